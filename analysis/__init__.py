@@ -1,0 +1,1 @@
+"""analysis package (see DESIGN.md section 2)."""

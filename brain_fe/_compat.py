@@ -1,0 +1,128 @@
+"""The one place for DOLFINx / UFL version differences.
+
+Tested with DOLFINx 0.5.2 (Debian 12) and 0.9.0 (Debian 13). Every switch is decided by
+feature detection, never by comparing version strings, so a new release only needs the
+branch for the feature that changed (0.10 moved ``gmshio`` to ``dolfinx.io.gmsh`` and
+``model_to_mesh`` returns a ``MeshData`` object; both are handled below).
+"""
+
+from __future__ import annotations
+
+import inspect
+from typing import Any
+
+import dolfinx
+import dolfinx.fem as fem
+import dolfinx.fem.petsc as fem_petsc
+import numpy as np
+import ufl
+
+DOLFINX_VERSION: str = dolfinx.__version__
+
+__all__ = [
+    "DOLFINX_VERSION",
+    "vector_space",
+    "scalar_space",
+    "form",
+    "petsc_vec",
+    "apply_lifting",
+    "set_bc",
+    "model_to_mesh",
+    "xdmf_file",
+]
+
+
+def vector_space(mesh, degree: int, dim: int):
+    """Continuous Lagrange space of ``dim`` components (any dim, e.g. 3 on a 2D mesh)."""
+    if hasattr(fem, "functionspace"):  # >= 0.8
+        return fem.functionspace(mesh, ("Lagrange", degree, (dim,)))
+    return fem.VectorFunctionSpace(mesh, ("Lagrange", degree), dim=dim)
+
+
+def scalar_space(mesh, degree: int):
+    if hasattr(fem, "functionspace"):
+        return fem.functionspace(mesh, ("Lagrange", degree))
+    return fem.FunctionSpace(mesh, ("Lagrange", degree))
+
+
+_FORM_KW = inspect.signature(fem.form).parameters
+_FCP = "form_compiler_options" if "form_compiler_options" in _FORM_KW else "form_compiler_params"
+_JITP = "jit_options" if "jit_options" in _FORM_KW else "jit_params"
+
+
+def form(expr: ufl.Form, *, fast_math: bool = True):
+    """Compile a UFL form; C flags tuned for the long expressions of spectral materials.
+
+    ``-ffast-math`` halves the kernel cost of the spectral Ogden tangent; the accuracy of
+    the compiled kernels is checked by the tests (eigen-sums to 1e-12 against numpy).
+    """
+    cflags = ["-O3", "-g0"] + (["-ffast-math"] if fast_math else [])
+    return fem.form(expr, **{_JITP: {"cffi_extra_compile_args": cflags}})
+
+
+def petsc_vec(u: fem.Function):
+    """The PETSc vector wrapping a Function's degrees of freedom."""
+    x = u.x
+    if hasattr(x, "petsc_vec"):  # >= 0.8
+        return x.petsc_vec
+    return u.vector
+
+
+_LIFT_KW = inspect.signature(fem_petsc.apply_lifting).parameters
+_LIFT_SCALE = "alpha" if "alpha" in _LIFT_KW else "scale"
+
+
+def apply_lifting(b, a, bcs, x0, scale: float) -> None:
+    """b <- b + scale * A (g - x0) for the Dirichlet rows of ``bcs``."""
+    fem_petsc.apply_lifting(b, [a], bcs=[bcs], x0=[x0], **{_LIFT_SCALE: scale})
+
+
+def set_bc(b, bcs, x0, scale: float) -> None:
+    """b[bc dofs] <- scale * (g - x0)."""
+    if hasattr(fem_petsc, "set_bc"):
+        fem_petsc.set_bc(b, bcs, x0, scale)
+    else:  # pragma: no cover - future API
+        for bc in bcs:
+            bc.set(b.array_w, x0.array_r, scale)
+
+
+def model_to_mesh(model, comm, rank: int = 0, gdim: int = 3) -> tuple[Any, Any, Any]:
+    """gmsh model -> (mesh, cell_tags, facet_tags) for every DOLFINx version."""
+    try:
+        from dolfinx.io import gmshio as _gmsh  # <= 0.9
+    except ImportError:  # pragma: no cover - 0.10+
+        from dolfinx.io import gmsh as _gmsh
+    out = _gmsh.model_to_mesh(model, comm, rank, gdim=gdim)
+    if isinstance(out, tuple):
+        return out[0], out[1], out[2]
+    return out.mesh, out.cell_tags, out.facet_tags  # pragma: no cover - 0.10+
+
+
+def xdmf_file(comm, path: str):
+    from dolfinx.io import XDMFFile
+
+    return XDMFFile(comm, path, "w")
+
+
+def interpolate_to(u_src: fem.Function, space) -> fem.Function:
+    """Interpolate ``u_src`` into ``space`` (same mesh), for output on P1."""
+    out = fem.Function(space, name=u_src.name)
+    out.interpolate(u_src)
+    return out
+
+
+def scalar_type():
+    from petsc4py import PETSc
+
+    return PETSc.ScalarType
+
+
+def owned_size(V) -> int:
+    """Number of owned (not ghost) dofs, counting block components."""
+    im = V.dofmap.index_map
+    return im.size_local * V.dofmap.index_map_bs
+
+
+def locate_dofs(V, sub: int | None, fdim: int, facets: np.ndarray) -> np.ndarray:
+    space = V if sub is None else V.sub(sub)
+    return fem.locate_dofs_topological(space, fdim, facets)

@@ -1,0 +1,1 @@
+"""identification package (see DESIGN.md section 2)."""

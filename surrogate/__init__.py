@@ -1,0 +1,1 @@
+"""surrogate package (see DESIGN.md section 2)."""

@@ -1,0 +1,43 @@
+"""Independent references, computed here with numpy/scipy only (no project code).
+
+DESIGN.md section 3: R = 4 mm, H = 5 mm, mu = 1 kPa, alpha = -20, kappa = 100 kPa,
+U = kappa/2 (J - 1)^2.
+"""
+
+import numpy as np
+from scipy.integrate import quad
+from scipy.optimize import brentq
+
+
+def ogden_energy(l1, l2, l3, mu, alpha, kappa):
+    """Compressible one-term Ogden energy in principal stretches (complex-step safe)."""
+    J = l1 * l2 * l3
+    iso = sum((J ** (-1.0 / 3.0) * li) ** alpha for li in (l1, l2, l3))
+    return 2 * mu / alpha**2 * (iso - 3) + kappa / 2 * (J - 1) ** 2
+
+
+def _dW(i, lams, mu, alpha, kappa, h=1e-30):
+    """Nominal principal stress dW/dlambda_i by complex-step differentiation."""
+    z = [complex(x) for x in lams]
+    z[i] += 1j * h
+    return ogden_energy(*z, mu, alpha, kappa).imag / h
+
+
+def homogeneous_uniaxial(lam, mu=1.0, alpha=-20.0, kappa=100.0):
+    """Slip-end (homogeneous) uniaxial nominal stress [kPa]: lateral stretch s from
+    P_lateral(lam, s, s) = 0 (root-solved), then P_axial."""
+    s = brentq(lambda s: _dW(1, (lam, s, s), mu, alpha, kappa), 0.5, 2.0, xtol=1e-15)
+    return _dW(0, (lam, s, s), mu, alpha, kappa)
+
+
+def rivlin_torque(gamma_R, mu=1.0, alpha=-20.0, radius=4.0):
+    """Incompressible torsion torque [mN mm]: T = 2 pi int_0^R W'(gamma r/R) r^2 dr,
+    W(gamma) = 2 mu/alpha^2 (l^alpha + l^-alpha - 2), l = gamma/2 + sqrt(1 + gamma^2/4)."""
+
+    def dW(g):
+        lam = g / 2 + np.sqrt(1 + g * g / 4)
+        dlam = 0.5 + g / (4 * np.sqrt(1 + g * g / 4))
+        return 2 * mu / alpha * (lam ** (alpha - 1) - lam ** (-alpha - 1)) * dlam
+
+    val, _ = quad(lambda r: dW(gamma_R * r / radius) * r**2, 0, radius, epsabs=1e-13)
+    return 2 * np.pi * val

@@ -1,0 +1,177 @@
+"""Verification of the forward model (DESIGN.md section 3 references)."""
+
+import math
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+from references import homogeneous_uniaxial, rivlin_torque
+
+
+def _params(**kw):
+    from brain_fe.model import MaterialParameters
+
+    base = {"mu": (1.0,), "alpha": (-20.0,), "kappa": 100.0, "nu0": None}
+    base.update(kw)
+    return MaterialParameters(**base)
+
+
+def test_slip_ends_match_homogeneous_solution(axi_slip):
+    """Slip ends: every point of the full protocol (loading and unloading, compression and
+    tension) within 0.1 % of the root-solved homogeneous uniaxial stress."""
+    from brain_fe.protocols import compression_tension
+
+    df = axi_slip.run(compression_tension(0.15), _params())
+    assert len(df) == 41
+    for lam, p in zip(df.stretch, df.nominal_stress_kPa, strict=True):
+        assert p == pytest.approx(homogeneous_uniaxial(lam), rel=1e-3, abs=1e-9)
+
+
+def test_torsion_approaches_rivlin(axi_glued):
+    """Compressible torque -> Rivlin's incompressible torque, first order in mu/kappa."""
+    from brain_fe.protocols import Protocol
+
+    ref = rivlin_torque(0.30)
+    prot = Protocol("torsion", (0.0, 0.30), max_increment=0.1)
+    dev = []
+    for kappa in (1e2, 1e3, 1e4):
+        T = axi_glued.run(prot, _params(kappa=kappa)).torque_mNmm.iloc[-1]
+        dev.append(abs(T - ref) / ref)
+    assert dev[0] > dev[1] > dev[2]
+    assert dev[2] < 5e-4
+    assert 5.0 < dev[1] / dev[2] < 20.0  # ~10x closer per decade of kappa/mu
+
+
+def _quadratic_constants(res, scale):
+    """rho_{k+1} / rho_k^2 for the residuals relative to the force scale mu pi R^2, above
+    the round-off floor (1e-11): bounded for quadratic convergence, while linear
+    convergence gives c / rho_k -> inf."""
+    rho = [x / scale for x in res]
+    return [b / a**2 for a, b in zip(rho[:-1], rho[1:], strict=False) if b > 1e-11]
+
+
+def test_newton_quadratic_through_reference_and_unloading(axi_glued):
+    """Quadratic convergence in compression, on unloading through lambda = 1, in tension
+    and in torsion: rho_{k+1} <= 100 rho_k^2 for every iteration of the default protocols,
+    at most 5 iterations per step (the bound 100 is far below linear behaviour)."""
+    from brain_fe.protocols import compression_tension, torsion
+
+    for prot in (compression_tension(0.15), torsion(0.30)):
+        axi_glued.run(prot, _params(nu0=0.49, kappa=None))
+        consts = [c for _, res in axi_glued.newton_log
+                  for c in _quadratic_constants(res, math.pi * 16)]
+        assert max(len(res) - 1 for _, res in axi_glued.newton_log) <= 5
+        assert len(consts) >= 20
+        assert max(consts) < 100.0  # linear convergence would give ~1e6 at rho ~ 1e-8
+
+
+def test_unloading_returns_to_the_loading_curve(axi_glued):
+    """Hyperelastic: unloading retraces loading (to 1e-8 relative) and ends force-free."""
+    from brain_fe.protocols import compression_tension, torsion
+
+    p = _params(nu0=0.49, kappa=None)
+    df = axi_glued.run(torsion(0.30), p)
+    df["shear"] = df.shear.round(10)
+    load = df[df.branch == "loading"].set_index("shear").torque_mNmm
+    unload = df[df.branch == "unloading"].set_index("shear").torque_mNmm
+    common = load.index.intersection(unload.index)
+    assert len(common) >= 10
+    np.testing.assert_allclose(unload[common], load[common], rtol=1e-8, atol=1e-9)
+    df = axi_glued.run(compression_tension(0.15), p)
+    assert abs(df.axial_force_mN.iloc[-1]) < 1e-9 * math.pi * 16
+
+
+def test_axisymmetric_matches_3d_in_torsion():
+    """Glued torsion to gamma = 0.15: torque and Poynting axial force of the
+    axisymmetric model within 1 % of the 3D gmsh model (both converge fast in torsion)."""
+    from brain_fe import geometry
+    from brain_fe.model import ForwardModel
+    from brain_fe.protocols import Protocol
+
+    prot = Protocol("torsion", (0.0, 0.15), max_increment=0.075)
+    p = _params(nu0=0.49, kappa=None)
+    m3 = ForwardModel(geometry.cylinder3d(refinement=1, comm=MPI.COMM_WORLD))
+    ma = ForwardModel(geometry.axisymmetric(refinement=2, comm=MPI.COMM_WORLD))
+    r3, ra = m3.run(prot, p).iloc[-1], ma.run(prot, p).iloc[-1]
+    assert ra.torque_mNmm == pytest.approx(r3.torque_mNmm, rel=1e-2)
+    assert ra.axial_force_mN == pytest.approx(r3.axial_force_mN, rel=1e-2)
+
+
+@pytest.mark.slow
+def test_axisymmetric_matches_3d_in_compression_tension():
+    """Glued compression/tension at lambda = 0.85 and 1.15: axisymmetric vs 3D within 1 %
+    once the 3D rim is resolved. The 3D value is Richardson-extrapolated from k = 1, 2
+    with the order observed on the axisymmetric sequence k = 2, 4, 8 (same singularity)."""
+    from brain_fe import geometry
+    from brain_fe.model import ForwardModel
+    from brain_fe.protocols import Protocol
+
+    p = _params(nu0=0.49, kappa=None)
+    prots = [Protocol("compression_tension", (1.0, lam), max_increment=0.05)
+             for lam in (0.85, 1.15)]
+
+    def stresses(m):
+        return np.array([m.run(pr, p).nominal_stress_kPa.iloc[-1] for pr in prots])
+
+    axi = [stresses(ForwardModel(geometry.axisymmetric(refinement=k))) for k in (2, 4, 8)]
+    order = np.log2(np.abs(axi[1] - axi[0]) / np.abs(axi[2] - axi[1]))
+    axi_lim = axi[2] + (axi[2] - axi[1]) / (2**order - 1)
+    d3 = [stresses(ForwardModel(geometry.cylinder3d(refinement=k))) for k in (1, 2)]
+    d3_lim = d3[1] + (d3[1] - d3[0]) / (2**order - 1)
+    np.testing.assert_allclose(axi[2], axi_lim, rtol=1e-2)
+    np.testing.assert_allclose(d3_lim, axi_lim, rtol=1e-2)
+
+
+@pytest.mark.parametrize("nu0", [0.45, 0.49, 0.499])
+def test_newton_succeeds_over_parameter_range(nu0):
+    """Full default protocols for mu in {0.3, 1, 3} kPa and alpha in {-30, -10, -2, 2, 10}:
+    Newton succeeds (cut-backs allowed), the unloaded end state is force-free and the
+    small-strain stiffness is positive."""
+    from brain_fe import geometry
+    from brain_fe.model import ForwardModel
+    from brain_fe.protocols import compression_tension, torsion
+
+    model = _sweep_model()
+    for mu in (0.3, 1.0, 3.0):
+        for alpha in (-30.0, -10.0, -2.0, 2.0, 10.0):
+            p = _params(mu=(mu,), alpha=(alpha,), kappa=None, nu0=nu0)
+            for prot in (compression_tension(0.15), torsion(0.15), torsion(0.30)):
+                df = model.run(prot, p)
+                scale = mu * math.pi * 16
+                assert abs(df.axial_force_mN.iloc[-1]) < 1e-8 * scale
+                col = "nominal_stress_kPa" if prot.test != "torsion" else "torque_mNmm"
+                first = df[col].iloc[1] * (1 if prot.test == "torsion" else -1)
+                assert first > 0
+    del geometry, ForwardModel
+
+
+_SWEEP = {}
+
+
+def _sweep_model():
+    from brain_fe import geometry
+    from brain_fe.model import ForwardModel
+
+    if "m" not in _SWEEP:
+        _SWEEP["m"] = ForwardModel(geometry.axisymmetric(refinement=1, comm=MPI.COMM_WORLD))
+    return _SWEEP["m"]
+
+
+@pytest.mark.mpi
+def test_distributed_equals_serial():
+    """The same solve on COMM_WORLD (distributed under mpirun -n 2) and on COMM_SELF gives
+    the same forces to 1e-8 relative."""
+    from brain_fe import geometry
+    from brain_fe.model import ForwardModel
+    from brain_fe.protocols import Protocol
+
+    p = _params(nu0=0.49, kappa=None)
+    prot = Protocol("torsion", (0.0, 0.30), max_increment=0.1)
+    prot_ct = Protocol("compression_tension", (1.0, 0.85, 1.15), max_increment=0.1)
+    out = []
+    for comm in (MPI.COMM_WORLD, MPI.COMM_SELF):
+        m = ForwardModel(geometry.axisymmetric(refinement=1, comm=comm))
+        t = m.run(prot, p)
+        c = m.run(prot_ct, p)
+        out.append(np.concatenate([t.torque_mNmm, t.axial_force_mN, c.axial_force_mN]))
+    np.testing.assert_allclose(out[0], out[1], rtol=1e-8, atol=1e-10)
