@@ -299,6 +299,7 @@ class ForwardModel:
         rows = []
         steps = protocol.steps()
         self.iterations = 0
+        self.cutbacks = 0
         self.newton_log: list[tuple[float, list[float]]] = []  # (control value, |r| history)
         for i, step in enumerate(steps):
             target = step.value
@@ -323,6 +324,7 @@ class ForwardModel:
                     saved.copy(x)
                     x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
                     dq /= 2
+                    self.cutbacks += 1
                 else:
                     raise ConvergenceError(
                         f"{protocol.test}: Newton failed at {protocol.control} = {q_new:.5g} "

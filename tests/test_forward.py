@@ -175,3 +175,30 @@ def test_distributed_equals_serial():
         c = m.run(prot_ct, p)
         out.append(np.concatenate([t.torque_mNmm, t.axial_force_mN, c.axial_force_mN]))
     np.testing.assert_allclose(out[0], out[1], rtol=1e-8, atol=1e-10)
+
+
+def test_cutback_recovers_then_fails_clearly(axi_slip):
+    """One huge step (stretch 1 -> 0.4, alpha = -30) needs a cut-back and then matches the
+    homogeneous solution to 0.1 %; with cut-backs disabled the error names the step."""
+    from brain_fe.protocols import Protocol
+    from brain_fe.solver import ConvergenceError
+
+    prot = Protocol("compression_tension", (1.0, 0.4), max_increment=0.6)
+    p = _params(alpha=(-30.0,), kappa=300.0)
+    df = axi_slip.run(prot, p)
+    assert axi_slip.cutbacks >= 1
+    assert df.nominal_stress_kPa.iloc[-1] == pytest.approx(
+        homogeneous_uniaxial(0.4, alpha=-30.0, kappa=300.0), rel=1e-3)
+    with pytest.raises(ConvergenceError, match="Newton failed at stretch = 0.4"):
+        axi_slip.run(prot, p, max_cutbacks=0)
+
+
+def test_field_output_xdmf(tmp_path, axi_slip):
+    """XDMF output for ParaView: one time step per output point."""
+    from brain_fe.protocols import Protocol
+
+    path = tmp_path / "u.xdmf"
+    axi_slip.run(Protocol("compression_tension", (1.0, 0.9), max_increment=0.05), _params(),
+                 field_output=str(path))
+    text = path.read_text()
+    assert text.count("<Time Value=") == 3

@@ -1,0 +1,74 @@
+"""`brainmech` command line: columns, units, atomic output and one-line errors."""
+
+import math
+
+import pandas as pd
+import pytest
+from references import homogeneous_uniaxial
+
+from brain_fe.cli import main
+
+
+def test_version_and_help(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.startswith("brainmech ")
+
+
+def test_simulate_compression_tension_csv(tmp_path):
+    """Slip ends, homogeneous: the CSV's nominal stress equals the semi-analytic value
+    (0.1 %) and axial force = stress * pi R^2 (1e-9)."""
+    out = tmp_path / "ct.csv"
+    rc = main(["simulate", "--test", "compression_tension", "--amplitude", "0.1", "--mu", "1",
+               "--alpha", "-20", "--kappa", "100", "--ends", "slip", "--refinement", "1",
+               "--radius-mm", "3", "--height-mm", "4", "--out", str(out)])
+    assert rc == 0
+    df = pd.read_csv(out)
+    assert list(df.columns) == ["time_s", "cycle", "branch", "stretch", "nominal_stress_kPa",
+                                "axial_force_mN"]
+    assert set(df.branch) == {"loading", "unloading"}
+    i = df.stretch.idxmin()
+    assert df.stretch[i] == pytest.approx(0.9)
+    assert df.nominal_stress_kPa[i] == pytest.approx(homogeneous_uniaxial(0.9), rel=1e-3)
+    assert (df.axial_force_mN / df.nominal_stress_kPa).dropna().iloc[1:].to_numpy() == \
+        pytest.approx(math.pi * 9, rel=1e-9)
+
+
+def test_simulate_torsion_columns_and_shear_stress(tmp_path):
+    out = tmp_path / "t.csv"
+    assert main(["simulate", "--test", "torsion", "--amplitude", "0.1", "--refinement", "1",
+                 "--out", str(out)]) == 0
+    df = pd.read_csv(out)
+    assert list(df.columns) == ["time_s", "cycle", "branch", "shear", "torque_mNmm",
+                                "shear_stress_kPa", "axial_force_mN"]
+    # shear stress = 2 T / (pi R^3), R = 4 mm
+    assert df.shear_stress_kPa.to_numpy() == pytest.approx(
+        2 * df.torque_mNmm.to_numpy() / (math.pi * 64), rel=1e-9, abs=1e-15)
+    assert df.shear.max() == pytest.approx(0.1)
+    # time stamps: rate 0.01 /s -> 0 -> 0.1 -> 0 takes 20 s
+    assert df.time_s.iloc[-1] == pytest.approx(20.0)
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["--nu0", "0.5"], "nu0 must lie in [0, 0.5)"),
+    (["--alpha", "0"], "alpha must be non-zero"),
+    (["--mu", "1,2", "--alpha", "-20"], "as many mu values as alpha"),
+    (["--test", "torsion", "--ends", "slip"], "torsion needs glued ends"),
+    (["--amplitude", "1.5"], "amplitude must lie in (0, 1)"),
+])
+def test_bad_input_is_one_line_no_file(tmp_path, capsys, args, fragment):
+    out = tmp_path / "x.csv"
+    rc = main(["simulate", "--refinement", "1", "--out", str(out), *args])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1
+    assert len(err.splitlines()) == 1 and fragment in err
+    assert "Traceback" not in err
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_unparsable_argument_exits_2(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["simulate", "--mu", "abc"])
+    assert e.value.code == 2
+    assert "expected comma-separated numbers" in capsys.readouterr().err
