@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
 from importlib.metadata import PackageNotFoundError, version
 
@@ -42,12 +43,20 @@ def _positive(text: str) -> float:
     return v
 
 
+def _accept_negative_lists(p: argparse.ArgumentParser) -> None:
+    """Let negative comma lists through as option values (``--alpha -25,5``,
+    ``--alpha-range -40,-2``); argparse otherwise only recognises single negative numbers
+    and takes ``-25,5`` for an option."""
+    p._negative_number_matcher = re.compile(r"^-\.?\d[\d.,eE+-]*$")
+
+
 def _add_simulate(sub):
     p = sub.add_parser(
         "simulate", help="run one test protocol on the FE model and write a CSV",
         description="Displacement-controlled compression/tension (1 -> 1-A -> 1 -> 1+A -> 1) "
         "or torsion (0 -> A -> 0, height fixed) of a glued cylinder with a compressible "
         "N-term Ogden material. Units: mm, kPa, mN, mN mm, s.")
+    _accept_negative_lists(p)
     p.add_argument("--model", choices=["axisymmetric", "3d"], default="axisymmetric")
     p.add_argument("--test", choices=["compression_tension", "torsion"],
                    default="compression_tension")
@@ -105,6 +114,119 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _range(text: str) -> tuple[float, float]:
+    vals = _floats(text)
+    if len(vals) != 2 or not vals[0] < vals[1]:
+        raise argparse.ArgumentTypeError(f"expected two numbers lo,hi with lo < hi, got {text!r}")
+    return vals
+
+
+def _add_sample(sub):
+    p = sub.add_parser(
+        "sample", help="generate FE samples over a parameter design (parallel, resumable)",
+        description="Solve the forward model for n parameter sets (mu log-uniform, alpha "
+        "uniform) and store the results in DIR (manifest.json + Parquet chunks). Run as "
+        "`mpirun -n K brainmech sample ...`: every rank solves its own share on "
+        "MPI.COMM_SELF. Re-running the same command resumes: it computes only the missing "
+        "samples.")
+    _accept_negative_lists(p)
+    p.add_argument("--n", type=int, required=True, help="number of parameter sets")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--design", choices=["sobol", "lhs"], default="sobol")
+    p.add_argument("--mu-range", type=_range, default=(0.1, 5.0),
+                   help="mu range in kPa, log-uniform (default 0.1,5)")
+    p.add_argument("--alpha-range", type=_range, default=(-40.0, -2.0),
+                   help="alpha range, uniform (default -40,-2)")
+    p.add_argument("--nu0", type=float, default=0.49, help="initial Poisson ratio (0.49)")
+    p.add_argument("--tests", default="compression_tension,torsion:0.15,torsion:0.30",
+                   help="comma list of test[:amplitude] (default "
+                   "compression_tension,torsion:0.15,torsion:0.30)")
+    p.add_argument("--model", choices=["axisymmetric", "3d"], default="axisymmetric")
+    p.add_argument("--refinement", type=int, default=None,
+                   help="mesh refinement level k (default: the model's default)")
+    p.add_argument("--radius-mm", type=_positive, default=4.0)
+    p.add_argument("--height-mm", type=_positive, default=5.0)
+    p.add_argument("--ends", choices=["glued", "slip"], default="glued")
+    p.add_argument("--volumetric", choices=["quadratic", "log"], default="quadratic")
+    p.add_argument("--chunk-size", type=int, default=16,
+                   help="samples per Parquet chunk and rank (default 16)")
+    p.add_argument("--out", required=True, metavar="DIR", help="store directory")
+    p.set_defaults(func=_cmd_sample)
+
+
+def _cmd_sample(args) -> int:
+    from mpi4py import MPI
+
+    from brain_fe import sampling
+
+    comm = MPI.COMM_WORLD
+    try:
+        spec = sampling.SampleSpec(
+            n=args.n, seed=args.seed, design=args.design, mu_range=args.mu_range,
+            alpha_range=args.alpha_range, nu0=args.nu0, tests=args.tests, model=args.model,
+            radius_mm=args.radius_mm, height_mm=args.height_mm, refinement=args.refinement,
+            ends=args.ends, volumetric=args.volumetric)
+        summary = sampling.run_sampling(spec, args.out, comm=comm, chunk_size=args.chunk_size)
+    except (ValueError, OSError):
+        if comm.rank != 0:  # every rank raises the same error; rank 0 reports it once
+            return 1
+        raise
+    if comm.rank == 0:
+        lines = [f"{args.out}: {summary.line()}; computed {summary.computed} in this run"]
+        lines += [f"  failed: sample {s} {t}: {r}" for s, t, r in summary.failures[:10]]
+        if len(summary.failures) > 10:
+            lines.append(f"  ... {len(summary.failures) - 10} more failed tests")
+        sys.stdout.write("\n".join(lines) + "\n")
+    return 0
+
+
+def _add_train(sub):
+    p = sub.add_parser(
+        "train", help="train one MLP surrogate per test on a sample store",
+        description="Per test (compression_tension, torsion_0.15, torsion_0.30): split the "
+        "curves by parameter set (train / validation / test), choose the architecture by "
+        "Gaussian-process Bayesian optimisation (scikit-optimize gp_minimize), retrain with "
+        "the best hyper-parameters, evaluate the R^2 of every test curve. Writes "
+        "MODEL_DIR/<test>.joblib, metrics.json and figures.")
+    p.add_argument("--samples", required=True, metavar="DIR", help="sample store (brainmech "
+                   "sample --out DIR)")
+    p.add_argument("--out", required=True, metavar="MODEL_DIR")
+    p.add_argument("--profile", choices=["default", "paper", "tiny"], default="default",
+                   help="default: early stopping (fast); paper: 6000 epochs compression/"
+                   "tension, 1000 torsion; tiny: for smoke tests")
+    p.add_argument("--trials", type=int, default=10, help="GP search trials (default 10)")
+    p.add_argument("--executions", type=int, default=2,
+                   help="trainings per trial, different seeds (default 2)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_train)
+
+
+def _cmd_train(args) -> int:
+    import json
+
+    from brain_fe.sampling import load_samples, read_manifest
+    from surrogate.data import TEST_KEYS
+    from surrogate.train import train_all
+
+    if args.trials < 1 or args.executions < 1:
+        raise CLIError("--trials and --executions must be at least 1")
+    manifest = read_manifest(args.samples)
+    stored = [t["name"] for t in manifest["spec"]["tests"]]
+    tests = tuple(k for k in TEST_KEYS if k in stored)
+    if not tests:
+        raise CLIError(f"{args.samples}: the store has none of the tests {', '.join(TEST_KEYS)}")
+    metrics = train_all(load_samples(args.samples), manifest, args.out, profile=args.profile,
+                        trials=args.trials, executions=args.executions, seed=args.seed,
+                        tests=tests, progress=True)
+    lines = [f"{args.out}: surrogates trained ({args.profile} profile)"]
+    for k in tests:
+        m = metrics[k]
+        lines.append(f"  {k}: test R^2 = {m['r2_mean']:.4f} +- {m['r2_std']:.4f} over "
+                     f"{m['n_test_curves']} curves; {json.dumps(m['hyperparameters'])}")
+    sys.stdout.write("\n".join(lines) + "\n")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="brainmech",
@@ -114,6 +236,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _add_simulate(sub)
+    _add_sample(sub)
+    _add_train(sub)
     return parser
 
 

@@ -62,6 +62,8 @@ class MaterialParameters:
             raise ValueError("give kappa or nu0")
         if self.kappa is not None and self.kappa <= 0:
             raise ValueError("kappa must be positive")
+        if self.kappa is None:
+            kappa_from_nu0(self.mu_total, float(self.nu0))  # validates nu0 before any work
 
     @property
     def mu_total(self) -> float:
@@ -136,7 +138,7 @@ class ForwardModel:
         self.jacobian_form = _compat.form(Jac)
         self.energy_form = _compat.form(Pi)
         self.compile_time_s = time.perf_counter() - t0
-        log.info("compiled %s forms in %.1f s", geometry.kind, self.compile_time_s)
+        log.debug("compiled %s forms in %.1f s", geometry.kind, self.compile_time_s)
         self._setup_bcs()
         self.newton = NewtonSolver(self.comm, self.residual_form, self.jacobian_form, self.u,
                                    self.bcs)

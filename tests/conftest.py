@@ -8,7 +8,6 @@ from mpi4py import MPI
 
 logging.getLogger("ffcx").setLevel(logging.WARNING)
 logging.getLogger("UFL").setLevel(logging.WARNING)
-logging.getLogger("root").setLevel(logging.WARNING)
 
 
 @pytest.fixture(scope="session")
