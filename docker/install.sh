@@ -16,7 +16,8 @@ export DEBIAN_FRONTEND=noninteractive
 # they are listed anyway because the FFCx JIT (cffi) compiles C against Python.h at run time.
 # ca-certificates: pip reaches PyPI over HTTPS (trixie-slim has no CA bundle).
 APT_PACKAGES=(python3-dolfinx python3-petsc4py python3-mpi4py python3-gmsh python3-venv
-              python3-dev libpython3-dev gcc g++ make openmpi-bin ca-certificates)
+              python3-dev libpython3-dev gcc g++ make openmpi-bin ca-certificates
+              libopenblas0-pthread)
 
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
