@@ -119,8 +119,15 @@ class ForwardModel:
         self.c_mu = [fem.Constant(msh, st(1.0)) for _ in range(self.n_terms)]
         self.c_alpha = [fem.Constant(msh, st(-20.0)) for _ in range(self.n_terms)]
         self.c_kappa = fem.Constant(msh, st(100.0))
-        self.material = CompressibleMaterial(Ogden(tuple(self.c_mu), tuple(self.c_alpha)),
-                                             VOLUMETRIC[volumetric](self.c_kappa))
+        # UFL variables around the constants: d(energy)/d(parameter) for the sensitivities
+        self.param_vars = {f"mu_{p}": ufl.variable(c) for p, c in enumerate(self.c_mu)}
+        self.param_vars.update({f"alpha_{p}": ufl.variable(c) for p, c in enumerate(self.c_alpha)})
+        self.param_vars["kappa"] = ufl.variable(self.c_kappa)
+        pv = self.param_vars
+        self.material = CompressibleMaterial(
+            Ogden(tuple(pv[f"mu_{p}"] for p in range(self.n_terms)),
+                  tuple(pv[f"alpha_{p}"] for p in range(self.n_terms))),
+            VOLUMETRIC[volumetric](pv["kappa"]))
         x = ufl.SpatialCoordinate(msh)
         if geometry.kind == "axisymmetric":
             F = _axisymmetric_F(self.u, x[0])
@@ -130,6 +137,7 @@ class ForwardModel:
             weight = 1.0
         C = F.T * F
         self.energy_density = self.material.strain_energy(C, J=ufl.det(F))
+        self._weight = weight
         Pi = self.energy_density * weight * geometry.dx
         R = ufl.derivative(Pi, self.u, v)
         Jac = ufl.derivative(R, self.u, du)
@@ -142,6 +150,59 @@ class ForwardModel:
         self._setup_bcs()
         self.newton = NewtonSolver(self.comm, self.residual_form, self.jacobian_form, self.u,
                                    self.bcs)
+        self._sens_forms = None
+
+    # ------------------------------------------------------------------ sensitivities
+    def _compile_sensitivities(self):
+        """dR/dtheta for every parameter constant and the Jacobian's action J(u)[z]."""
+        if self._sens_forms is not None:
+            return
+        t0 = time.perf_counter()
+        v = ufl.TestFunction(self.V)
+        dx = self.geometry.dx
+        forms = {}
+        for name, var in self.param_vars.items():
+            dW = ufl.diff(self.energy_density, var)
+            forms[name] = _compat.form(ufl.derivative(dW * self._weight * dx, self.u, v))
+        self._z = fem.Function(self.V)
+        R = ufl.derivative(self.energy_density * self._weight * dx, self.u, v)
+        self._action_form = _compat.form(ufl.derivative(R, self.u, self._z))
+        self._sens_forms = forms
+        self._sens_vecs = {k: fem_petsc.create_vector(f) for k, f in forms.items()}
+        self._action_vec = fem_petsc.create_vector(self._action_form)
+        log.debug("compiled sensitivity forms in %.1f s", time.perf_counter() - t0)
+
+    def _sensitivities(self) -> dict[str, tuple[float, float]]:
+        """d(axial force, torque)/d(parameter) at the current converged state.
+
+        Direct differentiation: K dz = -dR_f/dtheta on the free dofs (Dirichlet values do
+        not depend on the parameters), with the Jacobian factorised at this state; the
+        reaction w . R(u(theta), theta) then changes by w . (dR/dtheta + K z).
+        """
+        self.newton.ensure_factorised()
+        x = _compat.petsc_vec(self.u)
+        zvec = _compat.petsc_vec(self._z)
+        out = {}
+        for name, form in self._sens_forms.items():
+            r = self._sens_vecs[name]
+            with r.localForm() as rl:
+                rl.set(0.0)
+            fem_petsc.assemble_vector(r, form)
+            r.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            rhs = r.copy()
+            rhs.scale(-1.0)
+            _compat.set_bc(rhs, self.bcs, x, 0.0)
+            self.newton.ksp.solve(rhs, zvec)
+            zvec.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+            a = self._action_vec
+            with a.localForm() as al:
+                al.set(0.0)
+            fem_petsc.assemble_vector(a, self._action_form)
+            a.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            a.axpy(1.0, r)
+            out[name] = (float(a.dot(self._w_axial)), float(a.dot(self._w_torque())))
+            rhs.destroy()
+        return out
 
     # ------------------------------------------------------------------ boundary conditions
     def _dofs(self, sub: int | None, facet_name: str) -> np.ndarray:
@@ -276,14 +337,21 @@ class ForwardModel:
     # ------------------------------------------------------------------ protocol
     def run(self, protocol: Protocol, params: MaterialParameters, *,
             max_cutbacks: int = 6, field_output: str | None = None,
-            callback: Callable[[int, int], None] | None = None) -> pd.DataFrame:
+            callback: Callable[[int, int], None] | None = None,
+            sensitivities: bool = False) -> pd.DataFrame:
         """Follow ``protocol`` from the undeformed state; one row per output point.
 
         Columns: ``time_s, cycle, branch, stretch|shear`` and then
         ``nominal_stress_kPa, axial_force_mN`` (compression/tension) or
         ``torque_mNmm, shear_stress_kPa, axial_force_mN`` (torsion).
         Raises :class:`ConvergenceError` when Newton fails after ``max_cutbacks`` halvings.
+
+        With ``sensitivities``, every output column ``c`` gets companions ``d_c/d_mu_0``,
+        ``d_c/d_alpha_0`` ..., ``d_c/d_kappa`` (partial derivatives with respect to the
+        parameter constants; kappa is held fixed in ``d/d_mu_p``).
         """
+        if sensitivities:
+            self._compile_sensitivities()
         if protocol.test == "torsion" and self.ends == "slip":
             raise ValueError("torsion needs glued ends (frictionless plates cannot twist)")
         self.set_parameters(params)
@@ -345,6 +413,15 @@ class ForwardModel:
                 row["torque_mNmm"] = torque
                 row["shear_stress_kPa"] = 2.0 * torque / (math.pi * R**3)
                 row["axial_force_mN"] = fz
+            if sensitivities:
+                for name, (dfz, dtq) in self._sensitivities().items():
+                    if protocol.test == "compression_tension":
+                        row[f"d_nominal_stress_kPa/d_{name}"] = dfz / area
+                        row[f"d_axial_force_mN/d_{name}"] = dfz
+                    else:
+                        row[f"d_torque_mNmm/d_{name}"] = dtq
+                        row[f"d_shear_stress_kPa/d_{name}"] = 2.0 * dtq / (math.pi * R**3)
+                        row[f"d_axial_force_mN/d_{name}"] = dfz
             rows.append(row)
             if writer:
                 writer.write(step.time_s)

@@ -73,3 +73,15 @@ def arrays(df: pd.DataFrame, key: str, ids=None, target: str | None = None):
     X = df[["mu_kPa", "alpha", CONTROL[key]]].to_numpy(float)
     y = df[target or TARGET[key]].to_numpy(float)
     return X, y, df["sample"].to_numpy()
+
+
+def unique_rows(X: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge repeated inputs (mean target). The elastic model's unloading branch repeats its
+    loading branch point for point; training on both doubles the cost for no information."""
+    key = np.round(X, 12)
+    uniq, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    ym = np.bincount(inv, weights=y) / np.bincount(inv)
+    Xu = np.zeros_like(uniq)
+    Xu[inv] = X
+    return Xu, ym

@@ -20,7 +20,15 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import r2_score
 
-from .data import CONTROL, TARGET, TEST_KEYS, arrays, split_by_parameter_set, table_for_test
+from .data import (
+    CONTROL,
+    TARGET,
+    TEST_KEYS,
+    arrays,
+    split_by_parameter_set,
+    table_for_test,
+    unique_rows,
+)
 from .estimator import StressSurrogate
 from .persist import SurrogateBundle, library_versions, save_bundle
 from .search import gp_search
@@ -47,8 +55,8 @@ class Profile:
 PROFILES = {
     "paper": Profile("paper", {"compression_tension": 6000, "torsion": 1000},
                      {"compression_tension": 6000, "torsion": 1000}, False),
-    "default": Profile("default", {"compression_tension": 300, "torsion": 300},
-                       {"compression_tension": 1500, "torsion": 1500}, True),
+    "default": Profile("default", {"compression_tension": 60, "torsion": 60},
+                       {"compression_tension": 1000, "torsion": 1000}, True),
     # for tests and the quick reproduce profile
     "tiny": Profile("tiny", {"compression_tension": 40, "torsion": 40},
                     {"compression_tension": 200, "torsion": 200}, True),
@@ -117,8 +125,8 @@ def train_all(samples: pd.DataFrame, manifest: dict, out_dir: str, *, profile: s
         if table.empty:
             raise ValueError(f"the sample store has no successful {key} curves")
         split = split_by_parameter_set(table["sample"], seed=seed)
-        Xtr, ytr, _ = arrays(table, key, split.train)
-        Xva, yva, _ = arrays(table, key, split.val)
+        Xtr, ytr = unique_rows(*arrays(table, key, split.train)[:2])
+        Xva, yva = unique_rows(*arrays(table, key, split.val)[:2])
         t0 = time.perf_counter()
 
         def on_trial(i, params, score, key=key):

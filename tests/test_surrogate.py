@@ -7,29 +7,7 @@ import warnings
 
 import numpy as np
 import pytest
-from mpi4py import MPI
 from sklearn.metrics import r2_score
-
-
-@pytest.fixture(scope="module")
-def tiny_store(tmp_path_factory):
-    from brain_fe.sampling import SampleSpec, run_sampling
-
-    store = tmp_path_factory.mktemp("store")
-    spec = SampleSpec(n=12, seed=3, refinement=1)
-    run_sampling(spec, store, comm=MPI.COMM_SELF, progress=False)
-    return store
-
-
-@pytest.fixture(scope="module")
-def trained(tiny_store, tmp_path_factory):
-    from brain_fe.sampling import load_samples, read_manifest
-    from surrogate.train import train_all
-
-    out = tmp_path_factory.mktemp("models")
-    metrics = train_all(load_samples(tiny_store), read_manifest(tiny_store), str(out),
-                        profile="tiny", trials=2, executions=1, seed=1)
-    return out, metrics
 
 
 def test_split_never_shares_a_parameter_set():
@@ -56,14 +34,14 @@ def test_fe_stress_scales_with_mu_at_fixed_nu0(axi_slip):
                                atol=1e-12)
 
 
-def test_search_end_to_end_and_metrics(trained, tiny_store):
+def test_search_end_to_end_and_metrics(tiny_models, tiny_store):
     """metrics.json per test; its R^2 statistics recomputed independently from the saved
     models through the scikit-learn pipeline and sklearn's r2_score (1e-9)."""
     from brain_fe.sampling import load_samples
     from surrogate.data import TEST_KEYS, arrays, split_by_parameter_set, table_for_test
     from surrogate.persist import load_surrogates
 
-    out, metrics = trained
+    out, metrics = tiny_models
     on_disk = json.loads((out / "metrics.json").read_text())
     samples = load_samples(tiny_store)
     models = load_surrogates(str(out))
@@ -87,10 +65,10 @@ def test_search_end_to_end_and_metrics(trained, tiny_store):
         assert (out / f"{key}_test_curves.png").stat().st_size > 10_000
 
 
-def test_fast_forward_pass_equals_pipeline(trained):
+def test_fast_forward_pass_equals_pipeline(tiny_models):
     from surrogate.persist import load_surrogates
 
-    out, _ = trained
+    out, _ = tiny_models
     for b in load_surrogates(str(out)).values():
         lo, hi = b.control_range
         X = np.column_stack([np.full(30, np.mean(b.mu_range)), np.full(30, np.mean(b.alpha_range)),
@@ -99,10 +77,10 @@ def test_fast_forward_pass_equals_pipeline(trained):
                                    rtol=1e-12, atol=1e-14)
 
 
-def test_refuses_outside_training_range_and_other_conditions(trained):
+def test_refuses_outside_training_range_and_other_conditions(tiny_models):
     from surrogate.persist import OutOfRangeError, OutOfRangeWarning, load_surrogates
 
-    out, _ = trained
+    out, _ = tiny_models
     b = load_surrogates(str(out))["compression_tension"]
     mu_ok, al_ok = math.sqrt(b.mu_range[0] * b.mu_range[1]), np.mean(b.alpha_range)
     assert np.all(np.isfinite(b.predict(mu_ok, al_ok, [0.9, 1.1])))
