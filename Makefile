@@ -25,8 +25,11 @@ test-docker:
 lint: setup
 	$(VENV)/bin/ruff check .
 
+# Benchmarks that need no trained surrogates; the others are listed in BENCHMARKS.md.
 bench: setup
-	$(PY) benchmarks/bench_forward.py
+	OPENBLAS_NUM_THREADS=1 $(PY) benchmarks/bench_forward.py
+	OPENBLAS_NUM_THREADS=1 $(PY) benchmarks/bench_sampling.py
+	OPENBLAS_NUM_THREADS=1 $(PY) benchmarks/convergence.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 from collections.abc import Sequence
 
 import pandas as pd
 from mpi4py import MPI
 
 from . import geometry as geo
+from .io import write_table_atomic
 from .model import ForwardModel, MaterialParameters
 from .protocols import Protocol, compression_tension, torsion
 
@@ -75,16 +74,5 @@ def simulate(*, model: str = "axisymmetric", test: str = "compression_tension",
 def write_csv_atomic(df: pd.DataFrame, path: str, comm=MPI.COMM_WORLD) -> None:
     """Write on rank 0 through a temporary file and a rename: never a partial file."""
     if comm.rank == 0:
-        d = os.path.dirname(os.path.abspath(path))
-        if not os.path.isdir(d):
-            raise FileNotFoundError(f"output directory does not exist: {d}")
-        fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=".csv")
-        try:
-            with os.fdopen(fd, "w") as fh:
-                df.to_csv(fh, index=False, float_format="%.10g")
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        write_table_atomic(df, path, float_format="%.10g")
     comm.Barrier()

@@ -15,6 +15,11 @@ class CLIError(Exception):
     """An error reported to the user as one line, without a traceback."""
 
 
+def _say(lines: list[str]) -> None:
+    """A command's result summary on stdout (the only place the CLI writes to stdout)."""
+    sys.stdout.write("\n".join(lines) + "\n")
+
+
 def _version() -> str:
     try:
         return version("brainmech")
@@ -176,7 +181,7 @@ def _cmd_sample(args) -> int:
         lines += [f"  failed: sample {s} {t}: {r}" for s, t, r in summary.failures[:10]]
         if len(summary.failures) > 10:
             lines.append(f"  ... {len(summary.failures) - 10} more failed tests")
-        sys.stdout.write("\n".join(lines) + "\n")
+        _say(lines)
     return 0
 
 
@@ -223,7 +228,7 @@ def _cmd_train(args) -> int:
         m = metrics[k]
         lines.append(f"  {k}: test R^2 = {m['r2_mean']:.4f} +- {m['r2_std']:.4f} over "
                      f"{m['n_test_curves']} curves; {json.dumps(m['hyperparameters'])}")
-    sys.stdout.write("\n".join(lines) + "\n")
+    _say(lines)
     return 0
 
 
@@ -265,7 +270,7 @@ def _cmd_identify(args) -> int:
                      f"{d['mu_se_kPa']:.2g} kPa, alpha = {d['alpha']:.4g} +- "
                      f"{d['alpha_se']:.2g}, objective {d['objective']:.3g}, "
                      f"{d['fe_solves']} FE solves")
-    sys.stdout.write("\n".join(lines) + "\n")
+    _say(lines)
     return 0
 
 

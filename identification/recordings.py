@@ -59,7 +59,6 @@ import itertools
 import logging
 import math
 import os
-import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -687,27 +686,14 @@ def series(recordings: pd.DataFrame) -> dict[tuple[str, str], pd.DataFrame]:
 
 # ------------------------------------------------------------------------------ writing
 def write_table_atomic(df: pd.DataFrame, path) -> None:
-    """Write ``df`` (without its index) as CSV or Parquet, chosen by the extension, through a
-    temporary file in the same directory and ``os.replace``: readers never see a partial
-    file, and a failure leaves any previous file untouched.  CSV floats are written with
-    round-trip precision."""
+    """Write ``df`` as CSV or Parquet atomically (see :func:`brain_fe.io.write_table_atomic`);
+    an unknown extension or a missing directory is a :class:`RecordingsError`."""
+    from brain_fe.io import write_table_atomic as _write
+
     path = os.fspath(path)
-    kind = _kind(path)
-    d = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(d):
-        raise RecordingsError(f"{path}: output directory does not exist ({d})")
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=Path(path).suffix)
+    _kind(path)
     try:
-        with os.fdopen(fd, "wb") as fh:
-            if kind == "csv":
-                fh.write(df.to_csv(index=False, lineterminator="\n").encode("utf-8"))
-            else:
-                df.to_parquet(fh, index=False)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        _write(df, path)
+    except FileNotFoundError as exc:
+        raise RecordingsError(str(exc)) from None
     log.debug("wrote %d rows to %s", len(df), path)

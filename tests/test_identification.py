@@ -173,3 +173,22 @@ def test_identify_cli_bad_recordings_one_line(synthetic, tiny_models, tmp_path, 
     assert rc == 1 and len(err.splitlines()) == 1
     assert "rec.csv line 5, column stretch" in err
     assert not out.exists()
+
+
+def test_identify_region_averaged_curves(synthetic, tiny_models, tmp_path):
+    """Region-averaged input (specimen ids are region names): parameters.csv is keyed by
+    region, and the values match the per-specimen fit of the same curves (1e-9)."""
+    from identification.batch import identify_all
+    from identification.recordings import write_table_atomic
+
+    spec, truth, rec = synthetic
+    one = rec[rec.specimen == "S1"].assign(specimen="Hippocampus")
+    regions = spec.iloc[[1]].assign(specimen="Hippocampus", region="Hippocampus")
+    write_table_atomic(regions, str(tmp_path / "regions.csv"))
+    write_table_atomic(one, str(tmp_path / "rec.csv"))
+    t = identify_all(str(tmp_path / "rec.csv"), str(tmp_path / "regions.csv"),
+                     str(tiny_models[0]), str(tmp_path / "out"), refinement=1)
+    assert list(t.columns[:2]) == ["region", "fit"] and "specimen" not in t
+    assert t.region.tolist() == ["Hippocampus"]
+    assert t.mu_kPa.iloc[0] == pytest.approx(TRUTH[1][0], rel=0.02)
+    assert t.alpha.iloc[0] == pytest.approx(TRUTH[1][1], rel=0.03)
