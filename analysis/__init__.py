@@ -56,7 +56,7 @@ def correlate(parameters: pd.DataFrame, composition: pd.DataFrame, out_dir: str,
     fits = tuple(fits) if fits is not None else tuple(dict.fromkeys(tables[0]["fit"]))
     picks = {f: list(top_components(tables[0], f, "mu_kPa", k=k)["component"]) for f in fits}
     os.makedirs(out_dir, exist_ok=True)
-    from identification.recordings import write_table_atomic
+    from brain_fe.io import write_table_atomic
 
     write_table_atomic(table, os.path.join(out_dir, "kendall.csv"))
     for lv in levels:

@@ -302,6 +302,24 @@ def _cmd_brain_bank(args) -> int:
     return 0
 
 
+def _add_reproduce(sub):
+    p = sub.add_parser(
+        "reproduce", help="the whole study on the embedded synthetic brain bank",
+        description="sample -> train -> identify (both fit sets) -> correlate -> report, on "
+        "data/brain_bank. A re-run reuses finished stages. Writes OUT/report.md and "
+        "OUT/summary.json.")
+    p.add_argument("--profile", choices=["quick", "default", "paper"], default="quick")
+    p.add_argument("--out", default="results/reproduce", metavar="DIR")
+    p.set_defaults(func=_cmd_reproduce)
+
+
+def _cmd_reproduce(args) -> int:
+    from analysis.reproduce import reproduce, summary_lines
+
+    _say(summary_lines(reproduce(args.out, args.profile), args.out))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="brainmech",
@@ -315,6 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train(sub)
     _add_identify(sub)
     _add_brain_bank(sub)
+    _add_reproduce(sub)
     return parser
 
 
