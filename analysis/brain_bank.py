@@ -97,10 +97,12 @@ def region_average_curves(recordings: pd.DataFrame, specimens: pd.DataFrame,
     the paper's region-wise curves. Geometry-normalised quantities are averaged (nominal
     stress, torque-derived shear stress, axial force per pi R^2) and returned for the
     nominal radius; the "specimen" of an averaged curve is its region."""
+    from brain_fe.model import shear_stress_kPa, torque_mNmm
+
     geo = specimens.set_index("specimen")
     R = recordings.specimen.map(geo.radius_mm).to_numpy(float)
     rec = recordings.assign(region=recordings.specimen.map(geo.region),
-                            tau=2 * recordings.torque_mNmm / (np.pi * R**3),
+                            tau=shear_stress_kPa(recordings.torque_mNmm, R),
                             fz=recordings.axial_force_mN / (np.pi * R**2),
                             point=recordings.groupby(["specimen", "test", "amplitude"])
                             .cumcount())
@@ -108,7 +110,7 @@ def region_average_curves(recordings: pd.DataFrame, specimens: pd.DataFrame,
     first = rec.groupby(keys, sort=True)[["cycle", "branch", "time_s", "stretch", "shear"]].first()
     mean = rec.groupby(keys, sort=True)[["nominal_stress_kPa", "tau", "fz"]].mean()
     out = first.join(mean).reset_index()
-    out["torque_mNmm"] = out.tau * np.pi * radius_mm**3 / 2
+    out["torque_mNmm"] = torque_mNmm(out.tau, radius_mm)
     out["axial_force_mN"] = out.fz * np.pi * radius_mm**2
     out = out.rename(columns={"region": "specimen"})
     return out[["specimen", "test", "amplitude", "cycle", "branch", "time_s", "stretch",

@@ -88,6 +88,16 @@ def _axisymmetric_F(w, R):
                           [g[1, 0], 0, 1 + g[1, 1]]])
 
 
+def shear_stress_kPa(torque_mNmm, radius_mm):
+    """Torque-derived shear stress tau = 2 T / (pi R^3) [kPa] (T in mN mm, R in mm)."""
+    return 2.0 * torque_mNmm / (math.pi * radius_mm**3)
+
+
+def torque_mNmm(shear_stress_kPa, radius_mm):
+    """Inverse of :func:`shear_stress_kPa`: T = tau pi R^3 / 2 [mN mm]."""
+    return shear_stress_kPa * math.pi * radius_mm**3 / 2.0
+
+
 class ForwardModel:
     """Compiled forward model of one geometry, material form and end condition.
 
@@ -140,6 +150,7 @@ class ForwardModel:
         self._weight = weight
         Pi = self.energy_density * weight * geometry.dx
         R = ufl.derivative(Pi, self.u, v)
+        self._residual_ufl = R
         Jac = ufl.derivative(R, self.u, du)
         t0 = time.perf_counter()
         self.residual_form = _compat.form(R)
@@ -165,11 +176,11 @@ class ForwardModel:
             dW = ufl.diff(self.energy_density, var)
             forms[name] = _compat.form(ufl.derivative(dW * self._weight * dx, self.u, v))
         self._z = fem.Function(self.V)
-        R = ufl.derivative(self.energy_density * self._weight * dx, self.u, v)
-        self._action_form = _compat.form(ufl.derivative(R, self.u, self._z))
+        self._action_form = _compat.form(ufl.derivative(self._residual_ufl, self.u, self._z))
         self._sens_forms = forms
         self._sens_vecs = {k: fem_petsc.create_vector(f) for k, f in forms.items()}
         self._action_vec = fem_petsc.create_vector(self._action_form)
+        self._sens_rhs = self._action_vec.duplicate()
         log.debug("compiled sensitivity forms in %.1f s", time.perf_counter() - t0)
 
     def _sensitivities(self) -> dict[str, tuple[float, float]]:
@@ -189,7 +200,8 @@ class ForwardModel:
                 rl.set(0.0)
             fem_petsc.assemble_vector(r, form)
             r.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-            rhs = r.copy()
+            rhs = self._sens_rhs
+            r.copy(rhs)
             rhs.scale(-1.0)
             _compat.set_bc(rhs, self.bcs, x, 0.0)
             self.newton.ksp.solve(rhs, zvec)
@@ -201,7 +213,6 @@ class ForwardModel:
             a.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
             a.axpy(1.0, r)
             out[name] = (float(a.dot(self._w_axial)), float(a.dot(self._w_torque())))
-            rhs.destroy()
         return out
 
     # ------------------------------------------------------------------ boundary conditions
@@ -365,6 +376,14 @@ class ForwardModel:
         self._set_control(protocol.test, q_cur)
         R = self.geometry.radius_mm
         area = math.pi * R**2
+
+        def channels(fz, tq):
+            """Reported outputs of one test from the top-plate force and torque."""
+            if protocol.test == "compression_tension":
+                return {"nominal_stress_kPa": fz / area, "axial_force_mN": fz}
+            return {"torque_mNmm": tq, "shear_stress_kPa": shear_stress_kPa(tq, R),
+                    "axial_force_mN": fz}
+
         writer = _FieldWriter(self, field_output) if field_output else None
         rows = []
         steps = protocol.steps()
@@ -406,22 +425,10 @@ class ForwardModel:
             fz, torque = self.reactions()
             row = {"time_s": step.time_s, "cycle": step.cycle, "branch": step.branch,
                    CONTROL[protocol.test]: step.value}
-            if protocol.test == "compression_tension":
-                row["nominal_stress_kPa"] = fz / area
-                row["axial_force_mN"] = fz
-            else:
-                row["torque_mNmm"] = torque
-                row["shear_stress_kPa"] = 2.0 * torque / (math.pi * R**3)
-                row["axial_force_mN"] = fz
-            if sensitivities:
+            row.update(channels(fz, torque))
+            if sensitivities:  # the channels are linear in (force, torque)
                 for name, (dfz, dtq) in self._sensitivities().items():
-                    if protocol.test == "compression_tension":
-                        row[f"d_nominal_stress_kPa/d_{name}"] = dfz / area
-                        row[f"d_axial_force_mN/d_{name}"] = dfz
-                    else:
-                        row[f"d_torque_mNmm/d_{name}"] = dtq
-                        row[f"d_shear_stress_kPa/d_{name}"] = 2.0 * dtq / (math.pi * R**3)
-                        row[f"d_axial_force_mN/d_{name}"] = dfz
+                    row.update({f"d_{k}/d_{name}": v for k, v in channels(dfz, dtq).items()})
             rows.append(row)
             if writer:
                 writer.write(step.time_s)

@@ -79,11 +79,9 @@ class TestSpec:
         return f"{self.kind}_{self.amplitude:.2f}"
 
     def protocol(self):
-        from .protocols import compression_tension, torsion
+        from .api import make_protocol
 
-        if self.kind == "compression_tension":
-            return compression_tension(self.amplitude)
-        return torsion(self.amplitude)
+        return make_protocol(self.kind, self.amplitude)
 
 
 def parse_tests(text: str | Sequence[str]) -> tuple[TestSpec, ...]:

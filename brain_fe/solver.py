@@ -81,6 +81,7 @@ class NewtonSolver:
         self.A.assemble()
         self.ksp.setOperators(self.A)
         self.ksp.setUp()
+        self._factorised_state = self._state
 
     def ensure_factorised(self) -> None:
         """Make the factorisation belong to the current (converged) state.
@@ -90,7 +91,6 @@ class NewtonSolver:
         converged without any iteration (then the factorisation is a step old)."""
         if self._factorised_state != self._state:
             self.factorise()
-            self._factorised_state = self._state
 
     def solve(self) -> NewtonReport:
         self._state += 1
@@ -112,7 +112,6 @@ class NewtonSolver:
             if it == self.max_iterations:
                 break
             self.factorise()
-            self._factorised_state = self._state
             self.ksp.solve(b, self.du)
             if self.ksp.getConvergedReason() < 0:
                 rep.reason = f"linear solver failed ({self.ksp.getConvergedReason()})"

@@ -129,7 +129,7 @@ def stage_fe(curves: list[Curve], fe, mu0: float, alpha0: float, *,
         J = np.vstack(jacs) / norms[:, None]  # d r / d(mu, alpha)
         if not hist or hist[-1][1:3] != (mu, alpha):
             hist.append((len(hist) + 1, mu, alpha, float(r @ r)))
-        return r, J
+        return r, J, sims
 
     def fun(z):
         return both(z)[0]
@@ -146,10 +146,8 @@ def stage_fe(curves: list[Curve], fe, mu0: float, alpha0: float, *,
                         x_scale=[1.0, 10.0], ftol=1e-6, xtol=1e-5, gtol=1e-8,
                         max_nfev=max_evaluations)
     mu, alpha = float(np.exp(res.x[0])), float(res.x[1])
-    r, J = both(res.x)
-    obj, errs = _objective(curves, [c.stress + rr * c.norm for c, rr in
-                                    zip(curves, np.split(r, np.cumsum(
-                                        [len(c.stress) for c in curves])[:-1]), strict=True)])
+    r, J, sims = both(res.x)
+    obj, errs = _objective(curves, sims)
     st = Stage("fe", mu, alpha, obj, errs, history=hist,
                evaluations=fe.evaluations - evals0, protocol_solves=fe.protocol_solves - solves0,
                wall_time_s=time.perf_counter() - t0, message=res.message)

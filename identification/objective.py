@@ -41,6 +41,8 @@ class Curve:
 
 def curves_from_recordings(rec: pd.DataFrame, radius_mm: float) -> list[Curve]:
     """Curves of one specimen from its validated recordings (identification.recordings)."""
+    from brain_fe.model import shear_stress_kPa
+
     from .recordings import key_for_test
 
     out = []
@@ -49,7 +51,7 @@ def curves_from_recordings(rec: pd.DataFrame, radius_mm: float) -> list[Curve]:
         if test == "compression_tension":
             stress = g["nominal_stress_kPa"].to_numpy(float)
         else:
-            stress = 2.0 * g["torque_mNmm"].to_numpy(float) / (np.pi * radius_mm**3)
+            stress = shear_stress_kPa(g["torque_mNmm"].to_numpy(float), radius_mm)
         out.append(Curve(key, test, float(amp), g[CONTROL[test]].to_numpy(float), stress,
                          g["branch"].to_numpy()))
     return out

@@ -14,7 +14,6 @@ import pandas as pd
 from mpi4py import MPI
 
 from brain_fe.model import ForwardModel, MaterialParameters
-from brain_fe.protocols import compression_tension, torsion
 
 DEFAULT_TESTS = (("compression_tension", 0.15), ("torsion", 0.15), ("torsion", 0.30))
 
@@ -25,7 +24,7 @@ def make_recordings(specimens: pd.DataFrame, truth: pd.DataFrame, *, noise: floa
                     model_cache: dict | None = None) -> pd.DataFrame:
     """Recordings (one row per point) of every specimen in ``specimens`` (columns of the
     specimens table) with the parameters of ``truth`` (columns specimen, mu_kPa, alpha)."""
-    from brain_fe.api import make_geometry
+    from brain_fe.api import make_geometry, make_protocol
 
     rng = np.random.default_rng(seed)
     cache = {} if model_cache is None else model_cache
@@ -40,7 +39,7 @@ def make_recordings(specimens: pd.DataFrame, truth: pd.DataFrame, *, noise: floa
         t = truth.loc[s.specimen]
         p = MaterialParameters(mu=(float(t.mu_kPa),), alpha=(float(t.alpha),), nu0=nu0)
         for test, amp in tests:
-            prot = compression_tension(amp) if test == "compression_tension" else torsion(amp)
+            prot = make_protocol(test, amp)
             df = fm.run(prot, p)
             chans = (["nominal_stress_kPa"] if test == "compression_tension"
                      else ["torque_mNmm", "axial_force_mN"])
