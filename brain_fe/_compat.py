@@ -126,3 +126,56 @@ def owned_size(V) -> int:
 def locate_dofs(V, sub: int | None, fdim: int, facets: np.ndarray) -> np.ndarray:
     space = V if sub is None else V.sub(sub)
     return fem.locate_dofs_topological(space, fdim, facets)
+
+
+def quadrature_space(mesh, degree: int, n: int):
+    """Space of ``n`` values per quadrature point of the default ``degree`` rule, and the
+    reference points of that rule (the points ``dx(metadata={"quadrature_degree": degree})``
+    integrates at), for internal variables of history-dependent materials."""
+    import basix
+
+    if hasattr(fem, "functionspace"):  # >= 0.8: basix.ufl elements
+        import basix.ufl
+
+        el = basix.ufl.quadrature_element(mesh.basix_cell(), value_shape=(n,), degree=degree)
+        V = fem.functionspace(mesh, el)
+        return V, V.element.interpolation_points()
+    el = ufl.VectorElement("Quadrature", mesh.ufl_cell(), degree=degree, dim=n,
+                           quad_scheme="default")
+    V = fem.FunctionSpace(mesh, el)
+    cell = basix.cell.string_to_type(mesh.topology.cell_type.name)
+    points, _ = basix.make_quadrature(cell, degree)
+    return V, points
+
+
+def num_local_cells(mesh) -> int:
+    """Owned plus ghost cells on this rank."""
+    im = mesh.topology.index_map(mesh.topology.dim)
+    return im.size_local + im.num_ghosts
+
+
+def eval_expression(expr, mesh, cells: np.ndarray) -> np.ndarray:
+    """Values of a compiled ``fem.Expression`` on ``cells``: (cells, points * components)."""
+    try:
+        return expr.eval(mesh, cells)  # >= 0.6
+    except TypeError:
+        return expr.eval(cells)
+
+
+def dofmap_array(V) -> np.ndarray:
+    """Cell -> dof (block) indices as a 2D array."""
+    dm = V.dofmap.list
+    if hasattr(dm, "array"):  # <= 0.6: AdjacencyList
+        return dm.array.reshape(-1, V.dofmap.cell_dofs(0).size)
+    return np.asarray(dm)
+
+
+def facet_measure(geometry, degree: int):
+    """Boundary measure with the geometry's facet tags and an explicit quadrature degree."""
+    return ufl.Measure("ds", domain=geometry.mesh, subdomain_data=geometry.facet_tags,
+                       metadata={"quadrature_degree": degree})
+
+
+def assemble_scalar(form, comm) -> float:
+    """A compiled scalar form, summed over ranks."""
+    return float(comm.allreduce(fem.assemble_scalar(form)))

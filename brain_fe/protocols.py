@@ -4,7 +4,8 @@ The controlled quantity is the stretch ``lambda = h / H`` (compression/tension) 
 amount of shear at the outer radius ``gamma = theta R / H`` (torsion, height held fixed).
 A protocol is a list of waypoints traversed at a constant rate, repeated ``cycles`` times;
 each straight segment is a *branch*: ``loading`` when it moves away from the neutral
-value (1 or 0), ``unloading`` when it moves back.
+value (1 or 0), ``unloading`` when it moves back.  An optional dwell of ``hold_s`` seconds
+after every segment (branch ``hold``) gives relaxation tests for rate-dependent materials.
 """
 
 from __future__ import annotations
@@ -39,6 +40,8 @@ class Protocol:
     rate_per_s: |d value / dt| (1/s), sets the time stamps (history-dependent physics).
     max_increment: largest change of the controlled quantity between output points.
     cycles: repetitions of the waypoint cycle.
+    hold_s: dwell at the end of every segment [s] (0: none), output at ``hold_points``
+        equally spaced times.
     """
 
     test: str
@@ -46,6 +49,8 @@ class Protocol:
     rate_per_s: float = 0.01
     max_increment: float = 0.015
     cycles: int = 1
+    hold_s: float = 0.0
+    hold_points: int = 10
 
     def __post_init__(self):
         if self.test not in TESTS:
@@ -56,6 +61,8 @@ class Protocol:
             raise ValueError(f"{self.test} protocols start at {NEUTRAL[self.test]}")
         if self.rate_per_s <= 0 or self.max_increment <= 0 or self.cycles < 1:
             raise ValueError("rate, increment and cycles must be positive")
+        if self.hold_s < 0 or self.hold_points < 1:
+            raise ValueError("hold_s must be >= 0 and hold_points >= 1")
         if self.test == "compression_tension" and min(self.waypoints) <= 0.0:
             raise ValueError("stretch must stay positive")
 
@@ -82,6 +89,11 @@ class Protocol:
                     v = a + (b - a) * i / n
                     out.append(Step(t + abs(v - a) / self.rate_per_s, cycle, branch, float(v)))
                 t += abs(b - a) / self.rate_per_s
+                if self.hold_s > 0:
+                    for i in range(1, self.hold_points + 1):
+                        out.append(Step(t + self.hold_s * i / self.hold_points, cycle, "hold",
+                                        float(b)))
+                    t += self.hold_s
         return out
 
 
