@@ -29,13 +29,13 @@ def make_geometry(model: str = "axisymmetric", radius_mm: float = 4.0, height_mm
 
 
 def make_protocol(test: str, amplitude: float | None = None, rate_per_s: float = 0.01,
-                  cycles: int = 1) -> Protocol:
+                  cycles: int = 1, hold_s: float = 0.0) -> Protocol:
     if test == "compression_tension":
         return compression_tension(0.15 if amplitude is None else amplitude,
-                                   rate_per_s=rate_per_s, cycles=cycles)
+                                   rate_per_s=rate_per_s, cycles=cycles, hold_s=hold_s)
     if test == "torsion":
         return torsion(0.30 if amplitude is None else amplitude, rate_per_s=rate_per_s,
-                       cycles=cycles)
+                       cycles=cycles, hold_s=hold_s)
     raise ValueError(f"test must be 'compression_tension' or 'torsion', got {test!r}")
 
 
@@ -44,15 +44,33 @@ def simulate(*, model: str = "axisymmetric", test: str = "compression_tension",
              alpha: Sequence[float] = (-20.0,), kappa: float | None = None,
              nu0: float | None = 0.49, volumetric: str = "quadratic", radius_mm: float = 4.0,
              height_mm: float = 5.0, ends: str = "glued", refinement: int | None = None,
-             rate_per_s: float = 0.01, cycles: int = 1, field_output: str | None = None,
-             progress: bool = False, comm=MPI.COMM_WORLD) -> pd.DataFrame:
-    """One protocol on one freshly built model; returns the per-step table."""
-    params = MaterialParameters(mu=tuple(mu), alpha=tuple(alpha), nu0=nu0, kappa=kappa)
-    protocol = make_protocol(test, amplitude, rate_per_s, cycles)
+             rate_per_s: float = 0.01, cycles: int = 1, hold_s: float = 0.0,
+             field_output: str | None = None, progress: bool = False,
+             physics: dict | None = None, artefacts: dict | None = None,
+             sensitivities: bool = False, comm=MPI.COMM_WORLD) -> pd.DataFrame:
+    """One protocol on one freshly built model; returns the per-step table.
+
+    ``physics``: extension parameters of :class:`MaterialParameters` (``beta``, ``tau_s``,
+    ``softening``, ``softening_m_kPa``, ``k_r_kPa_mm``, ``k_theta_kPa_mm``); ``artefacts``:
+    fields of :class:`brain_fe.artefacts.Artefacts`.
+    """
+    from .artefacts import Artefacts
+
+    physics = dict(physics or {})
+    if ends == "springs" and physics.get("k_r_kPa_mm") is None:
+        raise ValueError("--ends springs needs --k-r and --k-theta (kPa/mm)")
+    if ends != "springs" and (physics.get("k_r_kPa_mm") is not None
+                              or physics.get("k_theta_kPa_mm") is not None):
+        raise ValueError("--k-r/--k-theta need --ends springs")
+    params = MaterialParameters(mu=tuple(mu), alpha=tuple(alpha), nu0=nu0, kappa=kappa,
+                                **physics)
+    art = Artefacts(**(artefacts or {}))
+    protocol = make_protocol(test, amplitude, rate_per_s, cycles, hold_s)
     if protocol.test == "torsion" and ends == "slip":
         raise ValueError("torsion needs glued ends (frictionless plates cannot twist)")
     g = make_geometry(model, radius_mm, height_mm, refinement, comm)
-    fm = ForwardModel(g, n_terms=len(params.mu), volumetric=volumetric, ends=ends)
+    fm = ForwardModel(g, n_terms=len(params.mu), volumetric=volumetric, ends=ends,
+                      maxwell=params.maxwell, mullins=params.softening > 0)
     bar = None
     if progress and comm.rank == 0:
         from tqdm import tqdm
@@ -65,7 +83,8 @@ def simulate(*, model: str = "axisymmetric", test: str = "compression_tension",
             bar.update(1)
 
     try:
-        return fm.run(protocol, params, field_output=field_output, callback=cb)
+        return fm.run(protocol, params, field_output=field_output, callback=cb,
+                      artefacts=art, sensitivities=sensitivities)
     finally:
         if bar is not None:
             bar.close()

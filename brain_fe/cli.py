@@ -81,13 +81,39 @@ def _add_simulate(sub):
                    "kappa/4 (J^2-1-2 ln J)")
     p.add_argument("--radius-mm", type=_positive, default=4.0)
     p.add_argument("--height-mm", type=_positive, default=5.0)
-    p.add_argument("--ends", choices=["glued", "slip"], default="glued")
+    p.add_argument("--ends", choices=["glued", "slip", "springs"], default="glued",
+                   help="glued plates (default), frictionless (slip) or a compliant glue "
+                   "layer (springs: give --k-r and --k-theta)")
     p.add_argument("--refinement", type=int, default=None,
                    help="mesh refinement level k (default: the level with <= 1 %% force "
                    "error, see BENCHMARKS.md)")
     p.add_argument("--rate", type=_positive, default=0.01,
                    help="rate of the controlled quantity, 1/s (default 0.01)")
     p.add_argument("--cycles", type=int, default=1)
+    p.add_argument("--hold", type=float, default=0.0, metavar="S",
+                   help="dwell after every branch, s (relaxation; default 0)")
+    x = p.add_argument_group("physics extensions (docs/physics.md); defaults are neutral")
+    x.add_argument("--maxwell-beta", type=_floats, default=(), metavar="LIST",
+                   help="relative stiffness beta_i >= 0 of each Maxwell branch")
+    x.add_argument("--maxwell-tau", type=_floats, default=(), metavar="LIST",
+                   help="relaxation time tau_i > 0 of each Maxwell branch, s")
+    x.add_argument("--softening", type=float, default=0.0, metavar="D",
+                   help="Ogden-Roxburgh softening d = 1/r in [0, 1) (Mullins effect)")
+    x.add_argument("--softening-m", type=_positive, default=0.05, metavar="KPA",
+                   help="Ogden-Roxburgh energy scale m, kPa (default 0.05)")
+    x.add_argument("--k-r", type=float, default=None, metavar="KPA_MM",
+                   help="radial stiffness per area of the glue layer (--ends springs)")
+    x.add_argument("--k-theta", type=float, default=None, metavar="KPA_MM",
+                   help="circumferential stiffness per area of the glue layer")
+    a = p.add_argument_group("measurement artefacts (true = nominal x (1 + e)); default 0")
+    a.add_argument("--height-rel", type=float, default=0.0, metavar="E")
+    a.add_argument("--radius-rel", type=float, default=0.0, metavar="E")
+    a.add_argument("--stretch-offset", type=float, default=0.0, metavar="S",
+                   help="contact-point zero offset: true stretch = recorded + S")
+    a.add_argument("--force-offset", type=float, default=0.0, metavar="MN")
+    a.add_argument("--torque-offset", type=float, default=0.0, metavar="MNMM")
+    p.add_argument("--sensitivities", action="store_true",
+                   help="add d_<column>/d_<parameter> columns for every model parameter")
     p.add_argument("--out", default=None, help="CSV file (default: print to stdout)")
     p.add_argument("--fields", default=None,
                    help="XDMF file for the displacement field per step (ParaView)")
@@ -106,8 +132,17 @@ def _cmd_simulate(args) -> int:
                       alpha=args.alpha, kappa=args.kappa, nu0=nu0,
                       volumetric=args.volumetric, radius_mm=args.radius_mm,
                       height_mm=args.height_mm, ends=args.ends, refinement=args.refinement,
-                      rate_per_s=args.rate, cycles=args.cycles, field_output=args.fields,
-                      progress=True)
+                      rate_per_s=args.rate, cycles=args.cycles, hold_s=args.hold,
+                      field_output=args.fields, progress=True,
+                      sensitivities=args.sensitivities,
+                      physics=dict(beta=args.maxwell_beta, tau_s=args.maxwell_tau,
+                                   softening=args.softening,
+                                   softening_m_kPa=args.softening_m, k_r_kPa_mm=args.k_r,
+                                   k_theta_kPa_mm=args.k_theta),
+                      artefacts=dict(height_rel=args.height_rel, radius_rel=args.radius_rel,
+                                     stretch_offset=args.stretch_offset,
+                                     force_offset_mN=args.force_offset,
+                                     torque_offset_mNmm=args.torque_offset))
     if args.out:
         api.write_csv_atomic(df, args.out)
         log.info("wrote %s (%d rows)", args.out, len(df))
@@ -151,7 +186,9 @@ def _add_sample(sub):
                    help="mesh refinement level k (default: the model's default)")
     p.add_argument("--radius-mm", type=_positive, default=4.0)
     p.add_argument("--height-mm", type=_positive, default=5.0)
-    p.add_argument("--ends", choices=["glued", "slip"], default="glued")
+    p.add_argument("--ends", choices=["glued", "slip", "springs"], default="glued",
+                   help="glued plates (default), frictionless (slip) or a compliant glue "
+                   "layer (springs: give --k-r and --k-theta)")
     p.add_argument("--volumetric", choices=["quadratic", "log"], default="quadratic")
     p.add_argument("--chunk-size", type=int, default=16,
                    help="samples per Parquet chunk and rank (default 16)")
@@ -320,6 +357,95 @@ def _cmd_reproduce(args) -> int:
     return 0
 
 
+def _add_diagnose(sub):
+    p = sub.add_parser(
+        "diagnose", help="locate the mismatch, name the missing physics, model it",
+        description="Fit the base model, locate where the misfit is systematic, fit every "
+        "candidate physics extension (FE in the loop), rank them by BIC and likelihood-ratio "
+        "tests and refit with the winner. Writes DIR/diagnosis.json, DIR/report.md and "
+        "figures. Run under `mpirun -n K` to share the candidate fits among K ranks. "
+        "With --budday the homogeneous analytical model is the base and the averaged "
+        "human-brain curves of Budday et al. (2017) are diagnosed region by region.")
+    p.add_argument("--recordings", default=None, help="recordings table (CSV or Parquet)")
+    p.add_argument("--specimens", default=None, help="specimens table (CSV or Parquet)")
+    p.add_argument("--specimen", default=None, help="diagnose only this specimen")
+    p.add_argument("--base", choices=["one-term-ogden", "homogeneous-ogden"],
+                   default="one-term-ogden")
+    p.add_argument("--budday", nargs="?", const="", default=None, metavar="CSV",
+                   help="diagnose the Budday 2017 averaged curves (default path: "
+                   "../shared/data/budday2017/budday2017_averaged.csv)")
+    p.add_argument("--effects", default=None,
+                   help="comma list of candidate effects (default: all the base can express)")
+    p.add_argument("--refinement", type=int, default=1,
+                   help="working mesh level; k+1 corrects its discretisation error")
+    p.add_argument("--nu0", type=float, default=0.49, help="assumed initial Poisson ratio")
+    p.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=_cmd_diagnose)
+
+
+def _cmd_diagnose(args) -> int:
+    from diagnosis import api
+
+    effects = [e.strip() for e in args.effects.split(",")] if args.effects else None
+    if args.budday is not None or args.base == "homogeneous-ogden":
+        if args.recordings:
+            raise CLIError("the homogeneous base model reads --budday data, not --recordings")
+        res = api.diagnose_budday(args.budday or None, args.out, nu0=args.nu0)
+        _say([f"{r}: verdict {v['verdict']}, RMS/noise {v['rms_before']:.2f} -> "
+              f"{v['rms_after']:.2f}" for r, v in res.items()] + [f"wrote {args.out}"])
+        return 0
+    if not args.recordings or not args.specimens:
+        raise CLIError("give --recordings and --specimens (or --budday)")
+    res = api.diagnose_recordings(args.recordings, args.specimens, args.out,
+                                  specimen=args.specimen, refinement=args.refinement,
+                                  effects=effects, nu0=args.nu0)
+    from mpi4py import MPI
+
+    if MPI.COMM_WORLD.rank == 0:
+        _say([f"{n}: verdict {r['verdict']}, RMS/noise {r['rms_before']:.2f} -> "
+              f"{r['rms_after']:.2f}" for n, r in res.items()] + [f"wrote {args.out}"])
+    return 0
+
+
+def _add_benchmark_diagnosis(sub):
+    p = sub.add_parser(
+        "benchmark-diagnosis", help="blind benchmark of the diagnosis on synthetic specimens",
+        description="Generate N synthetic specimens (full protocol, 2 cycles, 1 %% noise, a "
+        "finer mesh than the diagnosis), each with one concealed effect or none (controls, "
+        ">= 20 %%), store the labels apart, diagnose blind and score: confusion matrix, "
+        "accuracy, false alarms, RMS after modelling, parameter recovery. Cases are shared "
+        "among MPI ranks (mpirun -n K).")
+    p.add_argument("--cases", type=int, required=True)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--refinement", type=int, default=1)
+    p.add_argument("--truth-refinement", type=int, default=3)
+    p.add_argument("--effects", default=None, help="comma list (default: all)")
+    p.add_argument("--cycles", type=int, default=2)
+    p.add_argument("--increment", type=float, default=0.015,
+                   help="stretch increment between recorded points (default 0.015)")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_cmd_benchmark_diagnosis)
+
+
+def _cmd_benchmark_diagnosis(args) -> int:
+    from mpi4py import MPI
+
+    from diagnosis.benchmark import run_benchmark
+
+    if args.cases < 1:
+        raise CLIError("--cases must be >= 1")
+    effects = [e.strip() for e in args.effects.split(",")] if args.effects else None
+    s = run_benchmark(args.cases, args.seed, args.out, refinement=args.refinement,
+                      truth_refinement=args.truth_refinement,
+                      correction_refinement=args.refinement + 1, effects=effects,
+                      cycles=args.cycles, increment=args.increment)
+    if MPI.COMM_WORLD.rank == 0:
+        _say([f"cases {s['cases']}, accuracy {s['accuracy']:.3f}, false alarms "
+              f"{s['false_alarms_on_controls']}/{s['controls']}, median RMS after/noise "
+              f"{s['rms_after_over_noise_median']:.2f}", f"wrote {args.out}"])
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="brainmech",
@@ -334,6 +460,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_identify(sub)
     _add_brain_bank(sub)
     _add_reproduce(sub)
+    _add_diagnose(sub)
+    _add_benchmark_diagnosis(sub)
     return parser
 
 

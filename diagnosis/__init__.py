@@ -1,0 +1,1 @@
+"""Missing-physics diagnosis: locate the mismatch, name the physics, model it."""

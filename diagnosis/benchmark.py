@@ -1,0 +1,224 @@
+"""Blind benchmark: synthetic specimens, each with one concealed effect (or none).
+
+Every case draws random base parameters (mu log-uniform in [0.5, 2] kPa, alpha uniform in
+[-25, -8], nu0 = 0.49 assumed) and one effect of the library (controls: none). The effect
+size is calibrated so that the best base fit to the noiseless recordings leaves a misfit of
+about ``target`` (default 3.5, accepted 2-5) noise standard deviations RMS: concealed, not
+obvious by eye. Recordings come from a finer mesh than the diagnosis uses
+(``truth_refinement``), with 1 % Gaussian noise (of each channel's peak). The labels are
+written apart (``labels.json``) and the diagnosis never sees them.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from mpi4py import MPI
+
+from brain_fe.api import make_geometry
+from brain_fe.protocols import compression_tension, torsion
+
+from .effects import BASE_NAMES, EFFECTS
+from .engine import diagnose, fit
+from .observations import observations
+from .simulators import FESimulator, material_from_values
+
+log = logging.getLogger(__name__)
+CLASSES = tuple(EFFECTS) + ("none",)
+
+
+def full_protocols(cycles: int = 2, increment: float = 0.015):
+    """Compression/tension 0.15 and torsion 0.15, 0.30, ``cycles`` cycles each."""
+    return [compression_tension(0.15, cycles=cycles, max_increment=increment),
+            torsion(0.15, cycles=cycles, max_increment=0.15 * increment / 0.03),
+            torsion(0.30, cycles=cycles, max_increment=0.30 * increment / 0.03)]
+
+
+def effect_values(effect: str, size: float, shape: dict) -> dict:
+    """Extra parameter values of ``effect`` at scalar ``size`` (0 = neutral)."""
+    if effect == "viscoelastic":
+        return {"beta_0": size * 0.3, "log10_tau_0": shape["log10_tau"]}
+    if effect == "mullins":
+        return {"softening": min(size * 0.3, 0.9), "log10_softening_m": shape["log10_m"]}
+    if effect == "ogden_2term":
+        return {"mu_1": size * 0.1 * shape["mu"], "alpha_1": shape["alpha_1"]}
+    if effect == "compressibility":
+        return {"nu0": 0.49 - min(size * 0.03, 0.25)}
+    if effect == "imperfect_gluing":
+        return {"log10_k": math.log10(shape["k"] / max(size, 1e-6))}
+    if effect == "artefacts":
+        return {"stretch_offset": size * shape["offset"], "force_offset": 0.0,
+                "torque_offset": 0.0}
+    return {}
+
+
+def _shape(effect, rng, mu):
+    return {"log10_tau": rng.uniform(0.5, 1.5), "log10_m": rng.uniform(-2.0, -1.3),
+            "mu": mu, "alpha_1": rng.choice([-1, 1]) * rng.uniform(8, 15),
+            "k": 10 ** rng.uniform(0.5, 1.0), "offset": rng.choice([-1, 1]) * 0.004}
+
+
+@dataclass
+class Case:
+    name: str
+    effect: str
+    values: dict
+    size: float
+    base_misfit: float  # RMS of the best base fit to the noiseless data, in noise units
+
+
+def _recordings(values, protocols, geometry_truth, name, noise, rng, nu0=0.49):
+    """Recordings of the full protocol from the truth model (finer mesh)."""
+    from brain_fe.model import ForwardModel
+
+    params, art = material_from_values(values, nu0)
+    fm = ForwardModel(geometry_truth, n_terms=len(params.mu), maxwell=params.maxwell,
+                      mullins="softening" in values,
+                      ends="springs" if "log10_k" in values else "glued")
+    rows = []
+    for prot in protocols:
+        df = fm.run(prot, params, artefacts=art)
+        chans = (["nominal_stress_kPa"] if prot.test == "compression_tension"
+                 else ["torque_mNmm", "axial_force_mN"])
+        for ch in chans:
+            peak = float(np.max(np.abs(df[ch])))
+            df[ch] = df[ch] + noise * peak * rng.normal(size=len(df))
+        df.insert(0, "specimen", name)
+        df.insert(1, "test", prot.test)
+        df.insert(2, "amplitude", prot.amplitude)
+        rows.append(df)
+    rec = pd.concat(rows, ignore_index=True)
+    for c in ("stretch", "shear", "nominal_stress_kPa", "torque_mNmm", "axial_force_mN"):
+        if c not in rec:
+            rec[c] = np.nan
+    rec.loc[rec.test == "compression_tension", "axial_force_mN"] = np.nan
+    return rec[["specimen", "test", "amplitude", "cycle", "branch", "time_s", "stretch",
+                "shear", "nominal_stress_kPa", "torque_mNmm", "axial_force_mN"]]
+
+
+def make_case(i: int, effect: str, rng, *, refinement: int, truth_refinement: int,
+              protocols, target: float = 3.5, noise: float = 0.01, models: dict):
+    """One calibrated case: (recordings, specimens row, Case label)."""
+    name = f"case{i:03d}"
+    mu = float(np.exp(rng.uniform(np.log(0.5), np.log(2.0))))
+    base = {"mu_0": mu, "alpha_0": float(rng.uniform(-25, -8))}
+    shape = _shape(effect, rng, mu)
+    g_truth = models.setdefault(("g", truth_refinement),
+                                make_geometry("axisymmetric", 4.0, 5.0, truth_refinement,
+                                              comm=MPI.COMM_SELF))
+    size, misfit = 0.0, 0.0
+    if effect != "none":
+        size = 1.0
+        for _ in range(3):  # calibrate the size: misfit ~ linear in size for small effects
+            values = dict(base, **effect_values(effect, size, shape))
+            clean = _recordings(values, protocols, g_truth, name, 0.0, rng)
+            obs = observations(clean)
+            sim = models.get(("sim", len(obs)))
+            sim = FESimulator(obs, 4.0, 5.0, refinement=refinement)
+            fine = FESimulator(obs, 4.0, 5.0, refinement=truth_refinement)
+            y_f, _ = fine.predict(base, [])
+            y_c, _ = sim.predict(base, [])
+            sim.correction = y_f - y_c
+            peak = obs.groupby(["curve", "channel"])["value"].transform(
+                lambda v: np.abs(v).max()).to_numpy()
+            sigma = noise * peak
+            f = fit(sim, obs, sigma, base, list(BASE_NAMES), max_nfev=30)
+            misfit = float(np.sqrt(np.mean(f.z**2)))
+            log.info("%s %s size %.3g: base misfit %.2f x noise", name, effect, size, misfit)
+            if 2.5 <= misfit <= 4.5:
+                break
+            size *= target / max(misfit, 0.05)
+    values = dict(base, **effect_values(effect, size, shape))
+    rec = _recordings(values, protocols, g_truth, name, noise, rng)
+    spec = pd.DataFrame({"specimen": [name], "region": ["synthetic"], "brain": ["B0"],
+                         "radius_mm": [4.0], "height_mm": [5.0]})
+    return rec, spec, Case(name, effect, {k: float(v) for k, v in values.items()}, size,
+                           misfit)
+
+
+def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int = 1,
+                  truth_refinement: int = 3, correction_refinement: int = 2,
+                  controls: float = 0.25, effects=None, cycles: int = 2,
+                  increment: float = 0.015, comm=MPI.COMM_WORLD, progress=None) -> dict:
+    """Generate, diagnose blind and score ``n_cases`` cases; cases are shared among the
+    MPI ranks (each works on MPI.COMM_SELF). Writes DIR/cases/, labels.json, results."""
+    out = Path(out)
+    classes = list(effects or EFFECTS)
+    n_ctrl = max(1, int(math.ceil(controls * n_cases)))
+    labels = ["none"] * n_ctrl + [classes[i % len(classes)] for i in range(n_cases - n_ctrl)]
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(n_cases)
+    labels = [labels[i] for i in order]
+    seeds = rng.integers(0, 2**31, size=n_cases)
+    protocols = full_protocols(cycles, increment)
+    mine = []
+    models: dict = {}
+    if comm.rank == 0:
+        (out / "cases").mkdir(parents=True, exist_ok=True)
+    comm.Barrier()
+    for i in range(comm.rank, n_cases, comm.size):
+        case_rng = np.random.default_rng(seeds[i])
+        rec, spec, case = make_case(i, labels[i], case_rng, refinement=refinement,
+                                    truth_refinement=truth_refinement, protocols=protocols,
+                                    models=models)
+        rec.to_csv(out / "cases" / f"{case.name}_recordings.csv", index=False)
+        spec.to_csv(out / "cases" / f"{case.name}_specimens.csv", index=False)
+        # --- blind: from here on only the recordings are used
+        obs = observations(rec)
+        sim = FESimulator(obs, 4.0, 5.0, refinement=refinement)
+        fine = FESimulator(obs, 4.0, 5.0, refinement=correction_refinement)
+        d = diagnose(sim, obs, fine_sim=fine, effects=classes)
+        res = d.to_json()
+        res.update(case=case.name)
+        mine.append((case, res))
+        log.info("%s: truth %s, verdict %s (%.0f s)", case.name, case.effect, d.verdict,
+                 d.elapsed_s)
+        if progress:
+            progress(case.name)
+    allres = [x for part in comm.allgather(mine) for x in part]
+    summary = score([c for c, _ in allres], [r for _, r in allres], classes)
+    if comm.rank == 0:
+        labels_json = {c.name: {"effect": c.effect, "values": c.values, "size": c.size,
+                                "base_misfit_over_noise": c.base_misfit} for c, _ in allres}
+        (out / "labels.json").write_text(json.dumps(labels_json, indent=1))
+        (out / "results.json").write_text(json.dumps({r["case"]: r for _, r in allres},
+                                                     indent=1))
+        (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+def score(cases, results, classes) -> dict:
+    """Confusion matrix, accuracy, false alarms, RMS ratio, effect-parameter recovery."""
+    names = list(classes) + ["none"]
+    conf = pd.DataFrame(0, index=names, columns=names)
+    recovery = []
+    for c, r in zip(cases, results, strict=True):
+        conf.loc[c.effect, r["verdict"]] += 1
+        if c.effect != "none" and r["verdict"] == c.effect:
+            for n in EFFECTS[c.effect].names:
+                if n in r["refit_parameters"] and abs(c.values.get(n, 0.0)) > 0:
+                    recovery.append({"case": c.name, "parameter": n, "truth": c.values[n],
+                                     "fitted": r["refit_parameters"][n]})
+    correct = sum(conf.loc[n, n] for n in names)
+    ctrl = [r for c, r in zip(cases, results, strict=True) if c.effect == "none"]
+    ratio = [r["rms_after"] for r in results]
+    return {
+        "cases": len(cases),
+        "accuracy": correct / max(len(cases), 1),
+        "false_alarms_on_controls": sum(r["verdict"] != "none" for r in ctrl),
+        "controls": len(ctrl),
+        "confusion": {k: {kk: int(vv) for kk, vv in row.items()}
+                      for k, row in conf.to_dict(orient="index").items()},
+        "rms_after_over_noise_median": float(np.median(ratio)) if ratio else float("nan"),
+        "rms_after_over_noise_max": float(np.max(ratio)) if ratio else float("nan"),
+        "base_misfit_over_noise": [c.base_misfit for c in cases if c.effect != "none"],
+        "parameter_recovery": recovery,
+        "elapsed_s_per_case_median": float(np.median([r["elapsed_s"] for r in results]))
+        if results else float("nan"),
+    }

@@ -1,0 +1,98 @@
+"""The library of candidate explanations the diagnosis can name.
+
+Each effect adds free parameters to the base fit (one-term Ogden mu_0, alpha_0 at fixed
+nu0) and nests the base model: at its neutral values it *is* the base model. Parameters
+are fitted in the transformed coordinates given here (log10 for scales spanning decades).
+
+| effect | parameters (fitted as) | neutral |
+|---|---|---|
+| viscoelastic | beta_0 [-], log10 tau_0 [s] | beta_0 = 0 |
+| mullins | softening d [-], log10 m [kPa] | d = 0 |
+| ogden_2term | mu_1 [kPa], alpha_1 [-] | mu_1 = 0 |
+| compressibility | nu0 [-] | nu0 = assumed value |
+| imperfect_gluing | log10 k [kPa/mm] (k_r = k_theta = k) | k -> infinity |
+| artefacts | stretch_offset [-], force_offset [mN], torque_offset [mN mm] | 0 |
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+BASE_NAMES = ("mu_0", "alpha_0")
+
+
+@dataclass(frozen=True)
+class Effect:
+    name: str
+    names: tuple[str, ...]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    starts: tuple[dict, ...]  # start values of the extra parameters (several: multi-start)
+    description: str
+    signature: str  # what it looks like in data (for the report)
+    kinds: tuple[str, ...] = field(default=("fe", "homogeneous"))
+
+
+EFFECTS: dict[str, Effect] = {e.name: e for e in (
+    Effect("viscoelastic", ("beta_0", "log10_tau_0"), (0.0, -1.0), (5.0, 3.0),
+           ({"beta_0": 0.3, "log10_tau_0": 0.5}, {"beta_0": 0.3, "log10_tau_0": 1.7}),
+           "finite-strain viscoelasticity (one Maxwell branch on the isochoric stress)",
+           "hysteresis between loading and unloading, rate dependence", kinds=("fe",)),
+    Effect("mullins", ("softening", "log10_softening_m"), (0.0, -4.0), (0.95, 1.0),
+           ({"softening": 0.3, "log10_softening_m": -1.5},
+            {"softening": 0.3, "log10_softening_m": -0.5}),
+           "Ogden-Roxburgh preconditioning softening",
+           "unloading below loading, first cycle stiffer than the next", kinds=("fe",)),
+    Effect("ogden_2term", ("mu_1", "alpha_1"), (0.0, -40.0), (5.0, 40.0),
+           ({"mu_1": 0.05, "alpha_1": 10.0}, {"mu_1": 0.05, "alpha_1": -10.0}),
+           "second Ogden term",
+           "tension/compression asymmetry and torsion shape beyond one term"),
+    Effect("compressibility", ("nu0",), (0.2,), (0.4999,), ({"nu0": 0.45},),
+           "compressibility as a free parameter (nu0)",
+           "axial force in torsion, stiffening by the glued ends"),
+    Effect("imperfect_gluing", ("log10_k",), (-1.0, ), (4.0,),
+           ({"log10_k": 0.5}, {"log10_k": 1.5}),
+           "compliant glue layer (tangential interface springs)",
+           "softer torsion and compression than glued, strongest at small strain",
+           kinds=("fe",)),
+    Effect("artefacts", ("stretch_offset", "force_offset", "torque_offset"),
+           (-0.05, -50.0, -50.0), (0.05, 50.0, 50.0),
+           ({"stretch_offset": 0.0, "force_offset": 0.0, "torque_offset": 0.0},),
+           "test artefacts: contact-point zero offset and load-cell offsets",
+           "curves shifted along the stretch axis or offset at zero deformation"),
+)}
+# A test that would separate two explanations the given tests cannot tell apart
+SEPARATING_TEST = {
+    frozenset({"viscoelastic", "mullins"}): "a relaxation test (hold at peak strain) or the "
+    "same cycle at a 10x different rate: only viscoelasticity relaxes and depends on rate",
+    frozenset({"ogden_2term", "compressibility"}): "lateral expansion (or volume) measured "
+    "in compression: only compressibility changes it",
+    frozenset({"imperfect_gluing", "compressibility"}): "a lubricated (slip-end) "
+    "compression test: the glue layer then plays no role",
+    frozenset({"imperfect_gluing", "ogden_2term"}): "torsion at a second specimen height: "
+    "interface compliance scales with 1/H, material nonlinearity does not",
+    frozenset({"artefacts", "ogden_2term"}): "a re-zeroed repeat test (contact point detected "
+    "at a force threshold) with the load cells tared",
+    frozenset({"artefacts", "imperfect_gluing"}): "a re-zeroed repeat test",
+}
+
+
+def separating_test(a: str, b: str) -> str:
+    return SEPARATING_TEST.get(frozenset({a, b}),
+                               "a test at a different rate, amplitude or end condition")
+
+# The homogeneous analytical model (cube tests reduced as if homogeneous) reports stresses:
+# its artefacts are a stretch offset and stress offsets instead of load-cell offsets.
+HOMOGENEOUS_ARTEFACTS = Effect(
+    "artefacts", ("stretch_offset", "stress_offset", "shear_offset"),
+    (-0.05, -1.0, -1.0), (0.05, 1.0, 1.0),
+    ({"stretch_offset": 0.0, "stress_offset": 0.0, "shear_offset": 0.0},),
+    EFFECTS["artefacts"].description, EFFECTS["artefacts"].signature)
+
+
+def library(kind: str) -> dict[str, Effect]:
+    """The candidate effects a simulator of ``kind`` (``fe`` | ``homogeneous``) can express."""
+    lib = {n: e for n, e in EFFECTS.items() if kind in e.kinds}
+    if kind == "homogeneous":
+        lib["artefacts"] = HOMOGENEOUS_ARTEFACTS
+    return lib

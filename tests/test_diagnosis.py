@@ -1,0 +1,88 @@
+"""Diagnosis: blind three-case run on a coarse mesh, refusal of bad input, real data."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from diagnosis import budday
+from diagnosis.benchmark import run_benchmark
+from diagnosis.observations import observations
+from diagnosis.simulators import FESimulator
+
+
+def test_blind_three_cases(tmp_path):
+    """One control and two concealed effects (1 % noise, data from a finer mesh), diagnosed
+    without the labels: every verdict right, no false alarm, refit at the noise level."""
+    s = run_benchmark(3, 7, tmp_path, refinement=1, truth_refinement=2,
+                      correction_refinement=2, effects=["viscoelastic", "artefacts"],
+                      cycles=1, increment=0.03, comm=MPI.COMM_SELF)
+    assert s["controls"] == 1
+    assert s["false_alarms_on_controls"] == 0
+    assert s["accuracy"] == 1.0, s["confusion"]
+    assert s["rms_after_over_noise_max"] < 1.3
+    labels = json.loads((tmp_path / "labels.json").read_text())
+    assert sorted(v["effect"] for v in labels.values()) == ["artefacts", "none",
+                                                            "viscoelastic"]
+    for v in labels.values():  # concealed: the base misfit is a few noise levels
+        if v["effect"] != "none":
+            assert 1.5 < v["base_misfit_over_noise"] < 6
+
+
+def test_fe_simulator_jacobian(tmp_path):
+    """The chain-ruled sensitivities (nu0, log10 tau) against central differences."""
+    from diagnosis.benchmark import _recordings, full_protocols
+    from brain_fe.api import make_geometry
+
+    vals = {"mu_0": 1.0, "alpha_0": -15.0, "nu0": 0.47, "beta_0": 0.4, "log10_tau_0": 0.8}
+    g = make_geometry("axisymmetric", 4.0, 5.0, 1, comm=MPI.COMM_SELF)
+    rec = _recordings(vals, full_protocols(1, 0.05)[:2], g, "S", 0.0,
+                      np.random.default_rng(0))
+    sim = FESimulator(observations(rec), 4.0, 5.0, refinement=1)
+    names = ["mu_0", "nu0", "log10_tau_0"]
+    y, J = sim.predict(vals, names)
+    for j, n in enumerate(names):
+        h = 1e-5
+        yp, _ = sim.predict(dict(vals, **{n: vals[n] + h}), [])
+        ym, _ = sim.predict(dict(vals, **{n: vals[n] - h}), [])
+        fd = (yp - ym) / (2 * h)
+        assert np.max(np.abs(fd - J[:, j])) < 1e-4 * np.max(np.abs(fd)), n
+
+
+def test_diagnose_refuses_malformed_recordings(tmp_path):
+    spec = tmp_path / "specimens.csv"
+    spec.write_text("specimen,region,brain,radius_mm,height_mm\nS1,CX,B1,4,5\n")
+    rec = tmp_path / "recordings.csv"
+    rec.write_text("specimen,test,amplitude,cycle,branch,time_s,stretch,shear,"
+                   "nominal_stress_kPa,torque_mNmm,axial_force_mN\n"
+                   "S1,compression_tension,0.15,1,loading,0,1.0,,0.0,,\n"
+                   "S1,compression_tension,0.15,1,loading,1,0.99,,abc,,\n")
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "brain_fe.cli", "diagnose", "--recordings",
+                        str(rec), "--specimens", str(spec), "--out", str(out)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1
+    err = [ln for ln in r.stderr.splitlines() if "error" in ln]
+    assert len(err) == 1 and "recordings.csv" in err[0] and "nominal_stress_kPa" in err[0]
+    assert "Traceback" not in r.stderr
+    assert not out.exists()
+
+
+@pytest.mark.skipif(not budday.available(), reason="../shared/data/budday2017 is absent")
+def test_budday_regions(tmp_path):
+    """Homogeneous base model on the four regions: one-term parameters in the range Budday
+    et al. report (mu ~ 0.3-2 kPa, alpha strongly negative) and a verdict for each."""
+    from diagnosis.api import diagnose_budday
+
+    s = diagnose_budday(None, tmp_path)
+    assert sorted(s) == ["BG", "CC", "CR", "CX"]
+    for r, v in s.items():
+        assert 0.1 < v["one_term"]["mu_0"] < 5.0, r
+        assert v["one_term"]["alpha_0"] < -5, r
+        assert v["rms_after"] <= v["rms_before"] + 1e-9, r
+        assert (tmp_path / r / "report.md").exists()
