@@ -192,8 +192,8 @@ def main():
             summary[name][label] = {t: summarise(d, t) for t, d in runs.items()}
         print(f"wrote {plot(name, title, curves, base_runs, err, a.out)}", flush=True)
     summary["elapsed_s"] = time.perf_counter() - t0
-    print("\ndiscretisation error of the base curves (k = %d vs %d): %s" % (
-        a.refinement, a.fine, ", ".join(f"{k} {100 * v:.3f} %" for k, v in err.items())))
+    errs = ", ".join(f"{k} {100 * v:.3f} %" for k, v in err.items())
+    print(f"\ndiscretisation error of the base curves (k = {a.refinement} vs {a.fine}): {errs}")
     for name in ["base"] + names:
         print(f"\n### {name}\n")
         rows = {"base": {"base": summary["base"]}}.get(name, summary[name])

@@ -17,17 +17,18 @@ from diagnosis.simulators import FESimulator
 
 
 def test_blind_three_cases(tmp_path):
-    """One control and two concealed effects (1 % noise, data from a finer mesh), diagnosed
-    without the labels: every verdict right, no false alarm, refit at the noise level."""
+    """One control and two concealed viscoelastic specimens (1 % noise, data from a finer
+    mesh), diagnosed without the labels: every verdict right, no false alarm, refit at the
+    noise level. (CI budget: one candidate class; the full library runs in the benchmark.)"""
     s = run_benchmark(3, 7, tmp_path, refinement=1, truth_refinement=2,
-                      correction_refinement=2, effects=["viscoelastic", "artefacts"],
+                      correction_refinement=2, effects=["viscoelastic"],
                       cycles=1, increment=0.03, comm=MPI.COMM_SELF)
     assert s["controls"] == 1
     assert s["false_alarms_on_controls"] == 0
     assert s["accuracy"] == 1.0, s["confusion"]
     assert s["rms_after_over_noise_max"] < 1.3
     labels = json.loads((tmp_path / "labels.json").read_text())
-    assert sorted(v["effect"] for v in labels.values()) == ["artefacts", "none",
+    assert sorted(v["effect"] for v in labels.values()) == ["none", "viscoelastic",
                                                             "viscoelastic"]
     for v in labels.values():  # concealed: the base misfit is a few noise levels
         if v["effect"] != "none":
@@ -36,8 +37,8 @@ def test_blind_three_cases(tmp_path):
 
 def test_fe_simulator_jacobian(tmp_path):
     """The chain-ruled sensitivities (nu0, log10 tau) against central differences."""
-    from diagnosis.benchmark import _recordings, full_protocols
     from brain_fe.api import make_geometry
+    from diagnosis.benchmark import _recordings, full_protocols
 
     vals = {"mu_0": 1.0, "alpha_0": -15.0, "nu0": 0.47, "beta_0": 0.4, "log10_tau_0": 0.8}
     g = make_geometry("axisymmetric", 4.0, 5.0, 1, comm=MPI.COMM_SELF)
