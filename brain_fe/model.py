@@ -525,8 +525,9 @@ class ForwardModel:
         """A model compiled with exactly the physics ``params`` switches on."""
         if params.k_r_kPa_mm is not None or params.k_theta_kPa_mm is not None:
             kw["ends"] = "springs"
+        mullins = kw.pop("mullins", False) or params.softening > 0
         return cls(geometry, n_terms=len(params.mu), maxwell=params.maxwell,
-                   mullins=params.softening > 0 or kw.pop("mullins", False), **kw)
+                   mullins=mullins, **kw)
 
     # ------------------------------------------------------------------ outputs
     def reactions(self) -> tuple[float, float]:
