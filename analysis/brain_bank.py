@@ -15,13 +15,14 @@ sum_c a_c z_rc + N(0, sd); specimens scatter around their region.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import pandas as pd
+
+from brain_fe.io import write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -153,9 +154,6 @@ def make_brain_bank(out_dir: str, spec: BankSpec = BankSpec(), *,
     truth_doc = {**summary, "region_truth": region_truth.to_dict("records"),
                  "specimen_truth": truth.to_dict("records"),
                  "composition_z": z.reset_index(names="region").to_dict("records")}
-    tmp = os.path.join(out_dir, ".truth.json.tmp")
-    with open(tmp, "w") as fh:
-        json.dump(truth_doc, fh, indent=1)
-    os.replace(tmp, os.path.join(out_dir, "truth.json"))
+    write_json_atomic(os.path.join(out_dir, "truth.json"), truth_doc, indent=1)
     log.info("virtual brain bank in %s: %s", out_dir, summary["counts"])
     return summary

@@ -19,6 +19,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import pandas as pd
 
+from brain_fe.io import write_json_atomic, write_text_atomic
+
 log = logging.getLogger(__name__)
 
 BANK = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "data",
@@ -62,10 +64,7 @@ def _stage(out: str, name: str, config: dict, run, progress_name: str | None = N
     t0 = time.perf_counter()
     run(folder)
     wall = time.perf_counter() - t0
-    tmp = marker + ".tmp"
-    with open(tmp, "w") as fh:
-        json.dump({"config": config, "wall_time_s": wall}, fh, indent=1)
-    os.replace(tmp, marker)
+    write_json_atomic(marker, {"config": config, "wall_time_s": wall}, indent=1)
     return wall
 
 
@@ -126,10 +125,7 @@ def reproduce(out: str, profile: str = "quick", *, bank: str = BANK,
     summary["wall_time_s"] = walls
     write_report(out, summary)
     walls["report"] = time.perf_counter() - t0
-    tmp = os.path.join(out, ".summary.json.tmp")
-    with open(tmp, "w") as fh:
-        json.dump(summary, fh, indent=1, default=float)
-    os.replace(tmp, os.path.join(out, "summary.json"))
+    write_json_atomic(os.path.join(out, "summary.json"), summary, indent=1, default=float)
     return summary
 
 
@@ -276,10 +272,7 @@ def write_report(out: str, s: dict) -> None:
         L += ["![heat map, specimens](analysis/specimens/heatmap_specimen.png)", ""]
     L += ["## Wall time per stage", "", "| stage | s |", "|---|---|"]
     L += [f"| {k} | {v:.1f} |" for k, v in s.get("wall_time_s", {}).items()]
-    tmp = os.path.join(out, ".report.md.tmp")
-    with open(tmp, "w") as fh:
-        fh.write("\n".join(L) + "\n")
-    os.replace(tmp, os.path.join(out, "report.md"))
+    write_text_atomic(os.path.join(out, "report.md"), "\n".join(L) + "\n")
 
 
 def summary_lines(s: dict, out: str) -> list[str]:

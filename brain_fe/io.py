@@ -42,3 +42,26 @@ def write_table_atomic(df: pd.DataFrame, path, *, float_format: str | None = Non
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def write_text_atomic(path, text: str) -> None:
+    """Write ``text`` through a temporary file in the same directory and ``os.replace``:
+    readers see the old file or the whole new one, never a partial one."""
+    path = os.fspath(path)
+    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), prefix=".tmp-")
+    try:
+        os.fchmod(fd, 0o666 & ~_umask())
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_json_atomic(path, obj, **kw) -> None:
+    """JSON document (``json.dumps`` options in ``kw``) written with write_text_atomic."""
+    import json
+
+    write_text_atomic(path, json.dumps(obj, **kw))

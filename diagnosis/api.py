@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
 from mpi4py import MPI
+
+from brain_fe.io import write_json_atomic
 
 from . import report
 from .engine import diagnose
@@ -55,7 +56,7 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
     if comm.rank == 0 and len(names) > 1:
         summary = {n: {"verdict": r["verdict"], "rms_before": r["rms_before"],
                        "rms_after": r["rms_after"]} for n, r in results.items()}
-        (out / "diagnosis.json").write_text(json.dumps(summary, indent=1))
+        write_json_atomic(out / "diagnosis.json", summary, indent=1)
     comm.Barrier()
     return results
 
@@ -80,5 +81,5 @@ def diagnose_budday(path: str | None, out: str, *, nu0: float = 0.49) -> dict:
                    "refit": v["refit_parameters"], "rms_before": v["rms_before"],
                    "rms_after": v["rms_after"], "located": v["located"][:3]}
                for r, v in results.items()}
-    (out / "diagnosis.json").write_text(json.dumps(summary, indent=1))
+    write_json_atomic(out / "diagnosis.json", summary, indent=1)
     return summary

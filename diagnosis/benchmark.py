@@ -11,7 +11,6 @@ written apart (``labels.json``) and the diagnosis never sees them.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import dataclass
@@ -22,6 +21,7 @@ import pandas as pd
 from mpi4py import MPI
 
 from brain_fe.api import make_geometry
+from brain_fe.io import write_json_atomic
 from brain_fe.protocols import compression_tension, torsion
 
 from .effects import BASE_NAMES, EFFECTS
@@ -119,7 +119,6 @@ def make_case(i: int, effect: str, rng, *, refinement: int, truth_refinement: in
             values = dict(base, **effect_values(effect, size, shape))
             clean = _recordings(values, protocols, g_truth, name, 0.0, rng)
             obs = observations(clean)
-            sim = models.get(("sim", len(obs)))
             sim = FESimulator(obs, 4.0, 5.0, refinement=refinement)
             fine = FESimulator(obs, 4.0, 5.0, refinement=truth_refinement)
             y_f, _ = fine.predict(base, [])
@@ -186,10 +185,9 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
     if comm.rank == 0:
         labels_json = {c.name: {"effect": c.effect, "values": c.values, "size": c.size,
                                 "base_misfit_over_noise": c.base_misfit} for c, _ in allres}
-        (out / "labels.json").write_text(json.dumps(labels_json, indent=1))
-        (out / "results.json").write_text(json.dumps({r["case"]: r for _, r in allres},
-                                                     indent=1))
-        (out / "summary.json").write_text(json.dumps(summary, indent=1))
+        write_json_atomic(out / "labels.json", labels_json, indent=1)
+        write_json_atomic(out / "results.json", {r["case"]: r for _, r in allres}, indent=1)
+        write_json_atomic(out / "summary.json", summary, indent=1)
     return summary
 
 

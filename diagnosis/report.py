@@ -2,25 +2,17 @@
 
 from __future__ import annotations
 
-import json
 import logging
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from brain_fe.io import write_json_atomic, write_text_atomic
 
 from . import locate as loc
 from .effects import EFFECTS
 
 log = logging.getLogger(__name__)
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
 
 
 def before_after(d, path: Path) -> None:
@@ -64,7 +56,7 @@ def write(d, out: str | Path, *, title: str = "diagnosis") -> dict:
     r = d.base.prediction - d.obs["value"].to_numpy(float)
     loc.mismatch_map(d.obs, r, d.sigma, d.located, out / "mismatch_map.png")
     before_after(d, out / "before_after.png")
-    _write_atomic(out / "diagnosis.json", json.dumps(res, indent=1, default=float))
+    write_json_atomic(out / "diagnosis.json", res, indent=1, default=float)
     lines = [f"# {title}", "",
              f"**Verdict: {d.verdict}**"
              + (f" — {EFFECTS[d.verdict].description}" if d.verdict in EFFECTS else
@@ -100,5 +92,5 @@ def write(d, out: str | Path, *, title: str = "diagnosis") -> dict:
                   f"(max {disc['max_over_noise']:.2f}, RMS {disc['rms_over_noise']:.2f} noise "
                   "standard deviations)."]
     lines += ["", f"Elapsed: {res['elapsed_s']:.0f} s."]
-    _write_atomic(out / "report.md", "\n".join(lines) + "\n")
+    write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
     return res

@@ -10,7 +10,6 @@ figures of the best, median and worst test curves (the paper's Figure 4), and
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import time
@@ -19,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 from sklearn.metrics import r2_score
+
+from brain_fe.io import write_json_atomic
 
 from .data import (
     CONTROL,
@@ -165,8 +166,5 @@ def train_all(samples: pd.DataFrame, manifest: dict, out_dir: str, *, profile: s
                  metrics[key]["r2_std"], len(r2))
     if bar is not None:
         bar.close()
-    tmp = os.path.join(out_dir, ".metrics.json.tmp")
-    with open(tmp, "w") as fh:
-        json.dump(metrics, fh, indent=2)
-    os.replace(tmp, os.path.join(out_dir, "metrics.json"))
+    write_json_atomic(os.path.join(out_dir, "metrics.json"), metrics, indent=2)
     return metrics
