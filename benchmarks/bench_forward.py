@@ -25,6 +25,8 @@ import sys
 import tempfile
 import time
 
+from _machine import cpu_model
+
 COMPILE_SNIPPET = """
 import time, json, sys
 from brain_fe import geometry
@@ -41,17 +43,6 @@ def first_call_compile(geom: str) -> float:
         out = subprocess.run([sys.executable, "-c", COMPILE_SNIPPET.format(geom=geom)],
                              env=env, capture_output=True, text=True, check=True)
         return json.loads(out.stdout.strip().splitlines()[-1])["compile_s"]
-
-
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 def main():

@@ -25,6 +25,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _machine import cpu_model
+
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "sampling.md"
 
@@ -70,14 +72,7 @@ def run_once(k: int, n: int, seed: int, tmp: Path) -> dict:
 
 
 def machine() -> str:
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    cpu = cpu_model() or "unknown"
     import dolfinx
 
     return (f"{os.cpu_count()} cores (nproc), CPU {cpu}, {platform.system()} "
