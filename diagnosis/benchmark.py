@@ -76,30 +76,13 @@ class Case:
 def _recordings(values, protocols, geometry_truth, name, noise, rng, nu0=0.49):
     """Recordings of the full protocol from the truth model (finer mesh)."""
     from brain_fe.model import ForwardModel
+    from identification.synthetic import record
 
     params, art = material_from_values(values, nu0)
     fm = ForwardModel(geometry_truth, n_terms=len(params.mu), maxwell=params.maxwell,
                       mullins="softening" in values,
                       ends="springs" if "log10_k" in values else "glued")
-    rows = []
-    for prot in protocols:
-        df = fm.run(prot, params, artefacts=art)
-        chans = (["nominal_stress_kPa"] if prot.test == "compression_tension"
-                 else ["torque_mNmm", "axial_force_mN"])
-        for ch in chans:
-            peak = float(np.max(np.abs(df[ch])))
-            df[ch] = df[ch] + noise * peak * rng.normal(size=len(df))
-        df.insert(0, "specimen", name)
-        df.insert(1, "test", prot.test)
-        df.insert(2, "amplitude", prot.amplitude)
-        rows.append(df)
-    rec = pd.concat(rows, ignore_index=True)
-    for c in ("stretch", "shear", "nominal_stress_kPa", "torque_mNmm", "axial_force_mN"):
-        if c not in rec:
-            rec[c] = np.nan
-    rec.loc[rec.test == "compression_tension", "axial_force_mN"] = np.nan
-    return rec[["specimen", "test", "amplitude", "cycle", "branch", "time_s", "stretch",
-                "shear", "nominal_stress_kPa", "torque_mNmm", "axial_force_mN"]]
+    return record(fm, params, protocols, name, noise=noise, rng=rng, artefacts=art)
 
 
 def make_case(i: int, effect: str, rng, *, refinement: int, truth_refinement: int,

@@ -18,6 +18,35 @@ from brain_fe.model import ForwardModel, MaterialParameters
 DEFAULT_TESTS = (("compression_tension", 0.15), ("torsion", 0.15), ("torsion", 0.30))
 
 
+RECORDING_COLUMNS = ["specimen", "test", "amplitude", "cycle", "branch", "time_s", "stretch",
+                     "shear", "nominal_stress_kPa", "torque_mNmm", "axial_force_mN"]
+
+
+def record(fm: ForwardModel, params: MaterialParameters, protocols, specimen: str, *,
+           noise: float, rng, artefacts=None) -> pd.DataFrame:
+    """Recordings of one specimen: ``fm`` run through every protocol, Gaussian noise of
+    ``noise`` times each channel's peak added, in the recordings-table layout."""
+    rows = []
+    for prot in protocols:
+        df = fm.run(prot, params, artefacts=artefacts)
+        chans = (["nominal_stress_kPa"] if prot.test == "compression_tension"
+                 else ["torque_mNmm", "axial_force_mN"])
+        for ch in chans:
+            peak = float(np.max(np.abs(df[ch])))
+            df[ch] = df[ch] + noise * peak * rng.normal(size=len(df))
+        df.insert(0, "specimen", specimen)
+        df.insert(1, "test", prot.test)
+        df.insert(2, "amplitude", prot.amplitude)
+        rows.append(df)
+    out = pd.concat(rows, ignore_index=True)
+    for c in RECORDING_COLUMNS:
+        if c not in out:
+            out[c] = np.nan
+    # recorded in torsion only; compression/tension reports the stress
+    out.loc[out.test == "compression_tension", "axial_force_mN"] = np.nan
+    return out[RECORDING_COLUMNS]
+
+
 def make_recordings(specimens: pd.DataFrame, truth: pd.DataFrame, *, noise: float = 0.01,
                     seed: int = 0, nu0: float = 0.49, refinement: int | None = None,
                     tests: Sequence[tuple[str, float]] = DEFAULT_TESTS,
@@ -28,35 +57,15 @@ def make_recordings(specimens: pd.DataFrame, truth: pd.DataFrame, *, noise: floa
 
     rng = np.random.default_rng(seed)
     cache = {} if model_cache is None else model_cache
-    rows = []
+    parts = []
     truth = truth.set_index("specimen")
     for s in specimens.itertuples(index=False):
         R, H = float(s.radius_mm), float(s.height_mm)
         if (R, H) not in cache:
             cache[(R, H)] = ForwardModel(make_geometry("axisymmetric", R, H, refinement,
                                                        comm=MPI.COMM_SELF))
-        fm = cache[(R, H)]
         t = truth.loc[s.specimen]
         p = MaterialParameters(mu=(float(t.mu_kPa),), alpha=(float(t.alpha),), nu0=nu0)
-        for test, amp in tests:
-            prot = make_protocol(test, amp)
-            df = fm.run(prot, p)
-            chans = (["nominal_stress_kPa"] if test == "compression_tension"
-                     else ["torque_mNmm", "axial_force_mN"])
-            for ch in chans:
-                peak = float(np.max(np.abs(df[ch])))
-                df[ch] = df[ch] + noise * peak * rng.normal(size=len(df))
-            df.insert(0, "specimen", s.specimen)
-            df.insert(1, "test", test)
-            df.insert(2, "amplitude", amp)
-            rows.append(df.drop(columns=[c for c in ("shear_stress_kPa",) if c in df]))
-    out = pd.concat(rows, ignore_index=True)
-    cols = ["specimen", "test", "amplitude", "cycle", "branch", "time_s", "stretch", "shear",
-            "nominal_stress_kPa", "torque_mNmm", "axial_force_mN"]
-    for c in cols:
-        if c not in out:
-            out[c] = np.nan
-    if "axial_force_mN" in out:
-        # recorded in torsion only; compression/tension reports the stress
-        out.loc[out.test == "compression_tension", "axial_force_mN"] = np.nan
-    return out[cols]
+        parts.append(record(cache[(R, H)], p, [make_protocol(test, amp) for test, amp in tests],
+                            s.specimen, noise=noise, rng=rng))
+    return pd.concat(parts, ignore_index=True)
