@@ -752,10 +752,11 @@ class ForwardModel:
         s0 = self.state.x.array.copy() if self.history else None
         r_plus = x.duplicate()
         out, new_ds = {}, {}
+        theta0 = {n: float(self.constants[n].value) for n in names}
 
         def perturb(name, h, with_u):
             c = self.constants[name]
-            c.value = float(self._theta0[name]) + h
+            c.value = theta0[name] + h
             if self.history:
                 self.state.x.array[:] = s0 + h * self._ds[name]
             if with_u:
@@ -764,13 +765,12 @@ class ForwardModel:
                 x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
 
         def restore(name):
-            self.constants[name].value = self._theta0[name]
+            self.constants[name].value = theta0[name]
             if self.history:
                 self.state.x.array[:] = s0
             u0.copy(x)
             x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
 
-        self._theta0 = {n: float(self.constants[n].value) for n in names}
         for name in names:
             eps = self._fd_step(name)
             # right-hand side: -(explicit + history) derivative of the residual at fixed u
