@@ -23,11 +23,14 @@ RECORDING_COLUMNS = ["specimen", "test", "amplitude", "cycle", "branch", "time_s
 
 
 def record(fm: ForwardModel, params: MaterialParameters, protocols, specimen: str, *,
-           noise: float, rng, artefacts=None) -> pd.DataFrame:
+           noise: float, rng, artefacts=None, amplitudes=None) -> pd.DataFrame:
     """Recordings of one specimen: ``fm`` run through every protocol, Gaussian noise of
-    ``noise`` times each channel's peak added, in the recordings-table layout."""
+    ``noise`` times each channel's peak added, in the recordings-table layout.
+    ``amplitudes`` (default: each protocol's own) label the tests in the table."""
+    if amplitudes is None:
+        amplitudes = [prot.amplitude for prot in protocols]
     rows = []
-    for prot in protocols:
+    for prot, amp in zip(protocols, amplitudes, strict=True):
         df = fm.run(prot, params, artefacts=artefacts)
         chans = (["nominal_stress_kPa"] if prot.test == "compression_tension"
                  else ["torque_mNmm", "axial_force_mN"])
@@ -36,7 +39,7 @@ def record(fm: ForwardModel, params: MaterialParameters, protocols, specimen: st
             df[ch] = df[ch] + noise * peak * rng.normal(size=len(df))
         df.insert(0, "specimen", specimen)
         df.insert(1, "test", prot.test)
-        df.insert(2, "amplitude", prot.amplitude)
+        df.insert(2, "amplitude", amp)
         rows.append(df)
     out = pd.concat(rows, ignore_index=True)
     for c in RECORDING_COLUMNS:
@@ -67,5 +70,6 @@ def make_recordings(specimens: pd.DataFrame, truth: pd.DataFrame, *, noise: floa
         t = truth.loc[s.specimen]
         p = MaterialParameters(mu=(float(t.mu_kPa),), alpha=(float(t.alpha),), nu0=nu0)
         parts.append(record(cache[(R, H)], p, [make_protocol(test, amp) for test, amp in tests],
-                            s.specimen, noise=noise, rng=rng))
+                            s.specimen, noise=noise, rng=rng,
+                            amplitudes=[amp for _, amp in tests]))
     return pd.concat(parts, ignore_index=True)
