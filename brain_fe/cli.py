@@ -398,7 +398,7 @@ def _cmd_diagnose(args) -> int:
         raise CLIError("give --recordings and --specimens (or --budday)")
     res = api.diagnose_recordings(args.recordings, args.specimens, args.out,
                                   specimen=args.specimen, refinement=args.refinement,
-                                  effects=effects, nu0=args.nu0)
+                                  effects=effects, nu0=args.nu0, progress=True)
     from mpi4py import MPI
 
     if MPI.COMM_WORLD.rank == 0:
@@ -421,8 +421,8 @@ def _add_benchmark_diagnosis(sub):
     p.add_argument("--truth-refinement", type=int, default=3)
     p.add_argument("--effects", default=None, help="comma list (default: all)")
     p.add_argument("--cycles", type=int, default=2)
-    p.add_argument("--increment", type=float, default=0.015,
-                   help="stretch increment between recorded points (default 0.015)")
+    p.add_argument("--increment", type=float, default=0.03,
+                   help="stretch increment between recorded points (default 0.03)")
     p.add_argument("--out", required=True)
     p.set_defaults(func=_cmd_benchmark_diagnosis)
 
@@ -438,7 +438,7 @@ def _cmd_benchmark_diagnosis(args) -> int:
     s = run_benchmark(args.cases, args.seed, args.out, refinement=args.refinement,
                       truth_refinement=args.truth_refinement,
                       correction_refinement=args.refinement + 1, effects=effects,
-                      cycles=args.cycles, increment=args.increment)
+                      cycles=args.cycles, increment=args.increment, progress=True)
     if MPI.COMM_WORLD.rank == 0:
         _say([f"cases {s['cases']}, accuracy {s['accuracy']:.3f}, false alarms "
               f"{s['false_alarms_on_controls']}/{s['controls']}, median RMS after/noise "

@@ -17,6 +17,22 @@ log = logging.getLogger(__name__)
 BASES = ("one-term-ogden", "homogeneous-ogden")
 
 
+def progress_callback(progress, comm, desc: str, unit: str):
+    """(bar, callback): a tqdm bar on rank 0 when ``progress`` is True, a callable passed
+    through otherwise."""
+    if progress is not True:
+        return None, progress
+    from tqdm import tqdm
+
+    bar = tqdm(desc=desc, unit=unit, disable=None if comm.rank == 0 else True)
+
+    def step(what: str) -> None:
+        bar.set_postfix_str(what)
+        bar.update()
+
+    return bar, step
+
+
 def diagnose_recordings(recordings: str, specimens: str, out: str, *,
                         specimen: str | None = None, refinement: int = 1,
                         effects=None, nu0: float = 0.49, comm=MPI.COMM_WORLD,
@@ -47,7 +63,10 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
         R, H = float(row.radius_mm), float(row.height_mm)
         sim = FESimulator(obs, R, H, refinement=refinement, nu0=nu0)
         fine = FESimulator(obs, R, H, refinement=refinement + 1, nu0=nu0)
-        d = diagnose(sim, obs, fine_sim=fine, effects=effects, comm=comm, progress=progress)
+        bar, step = progress_callback(progress, comm, f"diagnose {name}", "fit")
+        d = diagnose(sim, obs, fine_sim=fine, effects=effects, comm=comm, progress=step)
+        if bar is not None:
+            bar.close()
         target = out if len(names) == 1 else out / str(name)
         if comm.rank == 0:
             res = report.write(d, target, title=f"Diagnosis of specimen {name}")
