@@ -90,8 +90,30 @@ HOMOGENEOUS_ARTEFACTS = Effect(
     EFFECTS["artefacts"].description, EFFECTS["artefacts"].signature)
 
 
+# Glued cube reduced as if homogeneous (diagnosis.glued_cube): the end constraint, from a
+# frictionless end (k -> 0, the homogeneous base) to a perfect glue (k -> infinity).
+GLUED_ENDS = Effect(
+    "glued_ends", ("log10_k",), (-3.0,), (4.0,), ({"log10_k": 0.0}, {"log10_k": 2.0}),
+    "glued ends of a specimen reduced as if homogeneous (inhomogeneous uniaxial deformation; "
+    "interface springs of stiffness k)",
+    "compression stiffer than tension predicts, small-strain stiffening of both, shear "
+    "unaffected", kinds=("cube",))
+SEPARATING_TEST.update({
+    frozenset({"glued_ends", "ogden_2term"}): "a lubricated (slip-end) compression test or a "
+    "second specimen aspect ratio: the end constraint depends on the shape, the material "
+    "does not",
+    frozenset({"glued_ends", "artefacts"}): "a re-zeroed repeat test, or a lubricated one",
+    frozenset({"glued_ends", "compressibility"}): "a lubricated (slip-end) compression test "
+    "with the lateral expansion measured",
+})
+
+
 def library(kind: str) -> dict[str, Effect]:
-    """The candidate effects a simulator of ``kind`` (``fe`` | ``homogeneous``) can express."""
+    """The candidate effects a simulator of ``kind`` can express: ``fe`` (the cylinder
+    model), ``homogeneous`` (analytical), ``cube`` (analytical plus the glued-end FE
+    candidate)."""
+    if kind == "cube":
+        return dict(library("homogeneous"), glued_ends=GLUED_ENDS)
     lib = {n: e for n, e in EFFECTS.items() if kind in e.kinds}
     if kind == "homogeneous":
         lib["artefacts"] = HOMOGENEOUS_ARTEFACTS

@@ -88,3 +88,38 @@ def test_budday_regions(tmp_path):
         assert v["one_term"]["alpha_0"] < -5, r
         assert v["rms_after"] <= v["rms_before"] + 1e-9, r
         assert (tmp_path / r / "report.md").exists()
+        # each test alone: compression needs the stiffest mu (the glued-end signature)
+        by = v["one_term_by_test"]
+        assert by["compression"]["mu_0"] > by["tension"]["mu_0"], r
+    assert (tmp_path / "summary.md").read_text().count("|") > 30
+
+
+def test_glued_cube_nests_homogeneous_and_differentiates():
+    """The glued-end candidate of the cube reduction: k -> 0 (frictionless ends) is the
+    homogeneous analytical solution (FE of a homogeneous state: exact up to the Newton
+    tolerance); glue stiffens compression; its sensitivities match central differences."""
+    import pandas as pd
+
+    from diagnosis.glued_cube import GluedCubeSimulator
+
+    lam = np.r_[np.linspace(0.99, 0.9, 6), np.linspace(1.01, 1.1, 6)]
+    gam = np.linspace(0.02, 0.2, 6)
+    obs = pd.DataFrame({
+        "specimen": "S", "curve": ["compression"] * 6 + ["tension"] * 6 + ["simple_shear"] * 6,
+        "channel": "stress", "branch": "loading", "cycle": 1, "control": np.r_[lam, gam],
+        "time_s": np.nan, "value": 0.0})
+    sim = GluedCubeSimulator(obs, refinement=1)
+    v = {"mu_0": 0.6, "alpha_0": -20.0, "nu0": 0.49}
+    y_hom, _ = sim.predict(v, [])
+    y_slip, _ = sim.predict(dict(v, log10_k=-3.0), [])
+    assert np.max(np.abs(y_slip - y_hom)) < 2e-4 * np.max(np.abs(y_hom))
+    names = ["mu_0", "alpha_0", "log10_k"]
+    y, J = sim.predict(dict(v, log10_k=1.0), names)
+    assert np.all(np.abs(y[:6]) > np.abs(y_hom[:6]))  # glue stiffens compression
+    assert np.allclose(y[12:], y_hom[12:])  # simple shear stays homogeneous
+    for j, n in enumerate(names):
+        h = 1e-5
+        vv = dict(v, log10_k=1.0)
+        yp, _ = sim.predict(dict(vv, **{n: vv[n] + h}), [])
+        ym, _ = sim.predict(dict(vv, **{n: vv[n] - h}), [])
+        assert np.max(np.abs((yp - ym) / (2 * h) - J[:, j])) < 1e-4 * np.max(np.abs(J[:, j])), n
