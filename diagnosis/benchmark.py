@@ -21,7 +21,7 @@ import pandas as pd
 from mpi4py import MPI
 
 from brain_fe.api import make_geometry
-from brain_fe.io import write_json_atomic
+from brain_fe.io import write_json_atomic, write_text_atomic
 from brain_fe.protocols import compression_tension, torsion
 from brain_fe.solver import ConvergenceError
 
@@ -193,7 +193,41 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
         write_json_atomic(out / "labels.json", labels_json, indent=1)
         write_json_atomic(out / "results.json", {r["case"]: r for _, r in allres}, indent=1)
         write_json_atomic(out / "summary.json", summary, indent=1)
+        write_text_atomic(out / "summary.md", summary_markdown(summary))
     return summary
+
+
+def summary_markdown(s: dict) -> str:
+    """The benchmark's scores as Markdown: headline, confusion matrix, parameter recovery."""
+    conf = s["confusion"]
+    cols = [c for c in next(iter(conf.values())) if c != "error"
+            or any(r.get("error", 0) for r in conf.values())]
+    lines = ["# Blind diagnosis benchmark", "",
+             f"- cases: {s['cases']} ({s['controls']} controls)",
+             f"- correct attribution: {s['accuracy']:.1%}",
+             f"- false alarms on controls: {s['false_alarms_on_controls']} of {s['controls']}",
+             f"- residual RMS after modelling / noise: median "
+             f"{s['rms_after_over_noise_median']:.2f}, max {s['rms_after_over_noise_max']:.2f}",
+             "- base misfit of the effect cases / noise: "
+             + (f"{min(s['base_misfit_over_noise']):.2f}-{max(s['base_misfit_over_noise']):.2f}"
+                if s["base_misfit_over_noise"] else "-"),
+             f"- diagnosis time per case (median): {s['elapsed_s_per_case_median']:.0f} s", "",
+             "Confusion matrix (rows: truth, columns: verdict)", "",
+             "| truth \\ verdict | " + " | ".join(cols) + " |",
+             "|---|" + "---|" * len(cols)]
+    for truth, row in conf.items():
+        if sum(row.values()):
+            lines.append(f"| {truth} | " + " | ".join(str(row.get(c, 0)) for c in cols) + " |")
+    rec = pd.DataFrame(s["parameter_recovery"])
+    if len(rec):
+        rec["error"] = rec["fitted"] - rec["truth"]
+        lines += ["", "Effect-parameter recovery (correct verdicts)", "",
+                  "| parameter | cases | median truth | median abs. error | max abs. error |",
+                  "|---|---|---|---|---|"]
+        for name, g in rec.groupby("parameter", sort=False):
+            lines.append(f"| {name} | {len(g)} | {g['truth'].median():.3g} | "
+                         f"{g['error'].abs().median():.3g} | {g['error'].abs().max():.3g} |")
+    return "\n".join(lines) + "\n"
 
 
 def score(cases, results, classes) -> dict:

@@ -28,6 +28,7 @@ def test_blind_three_cases(tmp_path):
     assert s["false_alarms_on_controls"] == 0
     assert s["accuracy"] == 1.0, s["confusion"]
     assert s["rms_after_over_noise_max"] < 1.3
+    assert "Confusion matrix" in (tmp_path / "summary.md").read_text()
     labels = json.loads((tmp_path / "labels.json").read_text())
     assert sorted(v["effect"] for v in labels.values()) == ["artefacts", "none",
                                                             "viscoelastic"]
