@@ -11,6 +11,7 @@ written apart (``labels.json``) and the diagnosis never sees them.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 from dataclasses import dataclass
@@ -42,6 +43,13 @@ def full_protocols(cycles: int = 2, increment: float = 0.03):
     return [compression_tension(0.15, cycles=cycles, max_increment=increment),
             torsion(0.15, cycles=cycles, max_increment=0.15 * increment / 0.15),
             torsion(0.30, cycles=cycles, max_increment=0.30 * increment / 0.15)]
+
+
+# Largest effect size the calibration may reach: realistic materials and test set-ups
+# (two-term mu_1 <= mu_0, Maxwell beta <= 3, softening d <= 0.9, nu0 >= 0.24, interface
+# k >= k_shape / 30, contact-point offset <= 3 % stretch).
+MAX_SIZE = {"viscoelastic": 10.0, "mullins": 3.0, "ogden_2term": 10.0,
+            "compressibility": 8.33, "imperfect_gluing": 30.0, "artefacts": 7.5}
 
 
 def effect_values(effect: str, size: float, shape: dict) -> dict:
@@ -100,7 +108,11 @@ def make_case(i: int, effect: str, rng, *, refinement: int, truth_refinement: in
                                 make_geometry("axisymmetric", 4.0, 5.0, truth_refinement,
                                               comm=MPI.COMM_SELF))
     size, misfit = 0.0, 0.0
-    if effect != "none":
+    for draw in range(3 if effect != "none" else 0):
+        if draw:  # this shape could not be made visible within the size caps: draw another
+            log.info("%s %s: misfit %.2f out of range, drawing a new effect shape", name,
+                     effect, misfit)
+            shape = _shape(effect, rng, mu)
         size = 1.0
         for attempt in range(4):  # calibrate the size: misfit ~ linear in size when small
             values = dict(base, **effect_values(effect, size, shape))
@@ -119,7 +131,13 @@ def make_case(i: int, effect: str, rng, *, refinement: int, truth_refinement: in
             log.info("%s %s size %.3g: base misfit %.2f x noise", name, effect, size, misfit)
             if 2.5 <= misfit <= 4.5 or attempt == 3:
                 break  # the size kept is the one whose misfit was measured
-            size *= target / max(misfit, 0.05)
+            new = min(size * float(np.clip(target / max(misfit, 1e-3), 0.1, 10.0)),
+                      MAX_SIZE[effect])
+            if new == size:
+                break  # at the cap
+            size = new
+        if 2.5 <= misfit <= 4.5:
+            break
     values = dict(base, **effect_values(effect, size, shape))
     rec = _recordings(values, protocols, g_truth, name, noise, rng)
     spec = pd.DataFrame({"specimen": [name], "region": ["synthetic"], "brain": ["B0"],
@@ -133,7 +151,10 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
                   controls: float = 0.25, effects=None, cycles: int = 2,
                   increment: float = 0.03, comm=MPI.COMM_WORLD, progress=None) -> dict:
     """Generate, diagnose blind and score ``n_cases`` cases; cases are shared among the
-    MPI ranks (each works on MPI.COMM_SELF). Writes DIR/cases/, labels.json, results."""
+    MPI ranks (each works on MPI.COMM_SELF). Writes DIR/cases/ (recordings, specimens and
+    each blind result), labels.json, results.json, summary.json and summary.md. Resumable:
+    a case whose recordings come out identical to those already in DIR is not diagnosed
+    again when the diagnosis settings (DIR/config.json) are unchanged."""
     out = Path(out)
     classes = list(effects or EFFECTS)
     n_ctrl = max(1, int(math.ceil(controls * n_cases)))
@@ -145,10 +166,20 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
     protocols = full_protocols(cycles, increment)
     mine = []
     models: dict = {}
+    # what a diagnosis result depends on besides the recordings: earlier results are
+    # reused only when it is unchanged
+    config = {"refinement": refinement, "correction_refinement": correction_refinement,
+              "effects": classes}
+    previous: dict = {}
+    reusable = ((out / "config.json").exists()
+                and json.loads((out / "config.json").read_text()) == config)
+    if reusable and (out / "results.json").exists():
+        previous = json.loads((out / "results.json").read_text())
     bar, step = progress_callback(progress, comm, "diagnosis benchmark (rank 0's cases)",
                                   "case")
     if comm.rank == 0:
         (out / "cases").mkdir(parents=True, exist_ok=True)
+        write_json_atomic(out / "config.json", config, indent=1)
     comm.Barrier()
     for i in range(comm.rank, n_cases, comm.size):
         case_rng = np.random.default_rng(seeds[i])
@@ -163,20 +194,26 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
                     raise
                 log.warning("case%03d: truth draw %d not solvable (%s); drawing again", i,
                             attempt, exc)
-        rec.to_csv(out / "cases" / f"{case.name}_recordings.csv", index=False)
+        csv_path = out / "cases" / f"{case.name}_recordings.csv"
+        result_path = out / "cases" / f"{case.name}_result.json"
+        text = rec.to_csv(index=False)
+        # resume: the diagnosis is deterministic, so identical recordings diagnosed
+        # before (this case's result file, or the results.json of an earlier run of the
+        # same benchmark) are not diagnosed again
+        res = None
+        if reusable and csv_path.exists() and csv_path.read_text() == text:
+            if result_path.exists():
+                res = json.loads(result_path.read_text())
+            elif case.name in previous:
+                res = previous[case.name]
+        if res is not None:
+            log.info("%s: recordings unchanged, diagnosis reused", case.name)
+        write_text_atomic(csv_path, text)
         spec.to_csv(out / "cases" / f"{case.name}_specimens.csv", index=False)
         # --- blind: from here on only the recordings are used
-        obs = observations(rec)
-        sim = FESimulator(obs, 4.0, 5.0, refinement=refinement)
-        fine = FESimulator(obs, 4.0, 5.0, refinement=correction_refinement)
-        try:
-            d = diagnose(sim, obs, fine_sim=fine, effects=classes)
-        except RuntimeError as exc:  # a failed diagnosis is scored as wrong, not fatal
-            log.error("%s: diagnosis failed: %s", case.name, exc)
-            res = {"verdict": "error", "error": str(exc), "rms_after": float("nan"),
-                   "refit_parameters": {}, "elapsed_s": float("nan")}
-        else:
-            res = d.to_json()
+        if res is None:
+            res = _diagnose_case(rec, refinement, correction_refinement, classes, case.name)
+            write_json_atomic(result_path, res, indent=1)
         res.update(case=case.name)
         mine.append((case, res))
         log.info("%s: truth %s, verdict %s (%.0f s)", case.name, case.effect, res["verdict"],
@@ -228,6 +265,20 @@ def summary_markdown(s: dict) -> str:
             lines.append(f"| {name} | {len(g)} | {g['truth'].median():.3g} | "
                          f"{g['error'].abs().median():.3g} | {g['error'].abs().max():.3g} |")
     return "\n".join(lines) + "\n"
+
+
+def _diagnose_case(rec, refinement, correction_refinement, classes, name) -> dict:
+    """The blind diagnosis of one case's recordings (a failure is scored, not fatal)."""
+    obs = observations(rec)
+    sim = FESimulator(obs, 4.0, 5.0, refinement=refinement)
+    fine = FESimulator(obs, 4.0, 5.0, refinement=correction_refinement)
+    try:
+        d = diagnose(sim, obs, fine_sim=fine, effects=classes)
+    except RuntimeError as exc:
+        log.error("%s: diagnosis failed: %s", name, exc)
+        return {"verdict": "error", "error": str(exc), "rms_after": float("nan"),
+                "refit_parameters": {}, "elapsed_s": float("nan")}
+    return d.to_json()
 
 
 def score(cases, results, classes) -> dict:

@@ -29,6 +29,16 @@ def test_blind_three_cases(tmp_path):
     assert s["accuracy"] == 1.0, s["confusion"]
     assert s["rms_after_over_noise_max"] < 1.3
     assert "Confusion matrix" in (tmp_path / "summary.md").read_text()
+    # resumable: the same benchmark again regenerates identical recordings and reuses
+    # every blind result instead of diagnosing again
+    stamps = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "cases").glob("*_result.json")}
+    assert len(stamps) == 3
+    s2 = run_benchmark(3, 7, tmp_path, refinement=1, truth_refinement=2,
+                       correction_refinement=2, effects=["viscoelastic", "artefacts"],
+                       cycles=1, increment=0.03, comm=MPI.COMM_SELF)
+    assert s2["confusion"] == s["confusion"]
+    assert stamps == {p.name: p.stat().st_mtime_ns
+                      for p in (tmp_path / "cases").glob("*_result.json")}
     labels = json.loads((tmp_path / "labels.json").read_text())
     assert sorted(v["effect"] for v in labels.values()) == ["artefacts", "none",
                                                             "viscoelastic"]
