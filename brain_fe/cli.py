@@ -415,7 +415,10 @@ def _add_benchmark_diagnosis(sub):
         ">= 20 %%), store the labels apart, diagnose blind and score: confusion matrix, "
         "accuracy, false alarms, RMS after modelling, parameter recovery. Cases are shared "
         "among MPI ranks (mpirun -n K).")
-    p.add_argument("--cases", type=int, required=True)
+    p.add_argument("--cases", type=int, default=None, help="number of cases (required "
+                   "unless --rescore)")
+    p.add_argument("--rescore", action="store_true",
+                   help="score the finished benchmark in --out again (no new runs)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--refinement", type=int, default=1)
     p.add_argument("--truth-refinement", type=int, default=3)
@@ -430,9 +433,14 @@ def _add_benchmark_diagnosis(sub):
 def _cmd_benchmark_diagnosis(args) -> int:
     from mpi4py import MPI
 
-    from diagnosis.benchmark import run_benchmark
+    from diagnosis.benchmark import rescore, run_benchmark
 
-    if args.cases < 1:
+    if args.rescore:
+        s = rescore(args.out)
+        _say([f"cases {s['cases']}, accuracy {s['accuracy']:.3f}, false alarms "
+              f"{s['false_alarms_on_controls']}/{s['controls']}", f"wrote {args.out}"])
+        return 0
+    if args.cases is None or args.cases < 1:
         raise CLIError("--cases must be >= 1")
     effects = [e.strip() for e in args.effects.split(",")] if args.effects else None
     s = run_benchmark(args.cases, args.seed, args.out, refinement=args.refinement,

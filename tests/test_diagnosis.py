@@ -11,7 +11,7 @@ import pytest
 from mpi4py import MPI
 
 from diagnosis import budday
-from diagnosis.benchmark import run_benchmark
+from diagnosis.benchmark import rescore, run_benchmark
 from diagnosis.observations import observations
 from diagnosis.simulators import FESimulator
 
@@ -37,6 +37,8 @@ def test_blind_three_cases(tmp_path):
                        correction_refinement=2, effects=["viscoelastic", "artefacts"],
                        cycles=1, increment=0.03, comm=MPI.COMM_SELF)
     assert s2["confusion"] == s["confusion"]
+    assert rescore(tmp_path)["confusion"] == s["confusion"]
+    assert s["rms_after_over_true_noise_max"] < 1.5  # against the noise actually added
     assert stamps == {p.name: p.stat().st_mtime_ns
                       for p in (tmp_path / "cases").glob("*_result.json")}
     labels = json.loads((tmp_path / "labels.json").read_text())
