@@ -96,7 +96,7 @@ def diagnose_budday(path: str | None, out: str, *, nu0: float = 0.49) -> dict:
         d = diagnose(sim, obs)
         results[region] = report.write(d, out / str(region),
                                        title=f"Diagnosis of region {region} (Budday 2017)")
-        by_test[region] = _fits_by_test(obs, d, nu0)
+        by_test[region] = _fits_by_test(obs, d)
     summary = {r: {"verdict": v["verdict"], "one_term": v["base_parameters"],
                    "one_term_by_test": by_test[r],
                    "refit": v["refit_parameters"], "rms_before": v["rms_before"],
@@ -107,7 +107,7 @@ def diagnose_budday(path: str | None, out: str, *, nu0: float = 0.49) -> dict:
     return summary
 
 
-def _fits_by_test(obs, d, nu0: float) -> dict:
+def _fits_by_test(obs, d) -> dict:
     """One-term fits of each test alone (same noise weights), started from the all-tests
     fit: how far the tests disagree when each is fitted on its own."""
     from .effects import BASE_NAMES
@@ -118,9 +118,8 @@ def _fits_by_test(obs, d, nu0: float) -> dict:
     for curve, sub in obs.groupby("curve", sort=False):
         rows = sub.index.to_numpy()
         sub = sub.reset_index(drop=True)
-        sim = HomogeneousSimulator(sub)
-        sim.kind, sim.nu0 = "homogeneous", nu0
-        f = fit(sim, sub, d.sigma[rows], d.base.values, list(BASE_NAMES), max_nfev=60)
+        f = fit(HomogeneousSimulator(sub), sub, d.sigma[rows], d.base.values,
+                list(BASE_NAMES), max_nfev=60)
         out[str(curve)] = {"mu_0": float(f.values["mu_0"]),
                            "alpha_0": float(f.values["alpha_0"]),
                            "rms_over_noise": float(np.sqrt(np.mean(f.z**2)))}

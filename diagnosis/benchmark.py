@@ -211,11 +211,12 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
         write_text_atomic(csv_path, text)
         spec.to_csv(out / "cases" / f"{case.name}_specimens.csv", index=False)
         # --- blind: from here on only the recordings are used
+        obs = observations(rec)
         if res is None:
-            res = _diagnose_case(rec, refinement, correction_refinement, classes, case.name)
+            res = _diagnose_case(obs, refinement, correction_refinement, classes, case.name)
             write_json_atomic(result_path, res, indent=1)
         res.update(case=case.name)
-        mine.append((case, res))
+        mine.append((case, res, _rms_over_true_noise(obs, res)))
         log.info("%s: truth %s, verdict %s (%.0f s)", case.name, case.effect, res["verdict"],
                  res["elapsed_s"])
         if step:
@@ -223,20 +224,21 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
     if bar is not None:
         bar.close()
     allres = [x for part in comm.allgather(mine) for x in part]
-    summary = score([c for c, _ in allres], [r for _, r in allres], classes,
-                    [_rms_over_true_noise(out, r) for _, r in allres])
+    summary = score([c for c, _, _ in allres], [r for _, r, _ in allres], classes,
+                    [t for _, _, t in allres])
     if comm.rank == 0:
         labels_json = {c.name: {"effect": c.effect, "values": c.values, "size": c.size,
-                                "base_misfit_over_noise": c.base_misfit} for c, _ in allres}
+                                "base_misfit_over_noise": c.base_misfit} for c, _, _ in allres}
         write_json_atomic(out / "labels.json", labels_json, indent=1)
-        write_json_atomic(out / "results.json", {r["case"]: r for _, r in allres}, indent=1)
+        write_json_atomic(out / "results.json", {r["case"]: r for _, r, _ in allres},
+                          indent=1)
         write_json_atomic(out / "summary.json", summary, indent=1)
         write_text_atomic(out / "summary.md", summary_markdown(summary))
     return summary
 
 
 def _nanstat(f, values) -> float:
-    v = np.array([x for x in (values or []) if x is not None], float)
+    v = np.asarray(values or [], float)
     return float(f(v)) if len(v) and np.isfinite(v).any() else float("nan")
 
 
@@ -276,9 +278,8 @@ def summary_markdown(s: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _diagnose_case(rec, refinement, correction_refinement, classes, name) -> dict:
-    """The blind diagnosis of one case's recordings (a failure is scored, not fatal)."""
-    obs = observations(rec)
+def _diagnose_case(obs, refinement, correction_refinement, classes, name) -> dict:
+    """The blind diagnosis of one case's observations (a failure is scored, not fatal)."""
     sim = FESimulator(obs, 4.0, 5.0, refinement=refinement)
     fine = FESimulator(obs, 4.0, 5.0, refinement=correction_refinement)
     try:
@@ -290,22 +291,27 @@ def _diagnose_case(rec, refinement, correction_refinement, classes, name) -> dic
     return d.to_json()
 
 
-def _rms_over_true_noise(out: Path, res: dict, noise: float = 0.01) -> float:
+def _rms_over_true_noise(obs: pd.DataFrame, res: dict, noise: float = 0.01) -> float:
     """Residual RMS after modelling against the noise actually added (``noise`` times each
-    channel's peak; the benchmark knows it, the diagnosis estimates it), pooled over rows."""
-    from identification.recordings import read_recordings, read_specimens
-
+    channel's peak of the observations ``obs``; the benchmark knows it, the diagnosis
+    estimates it), pooled over rows."""
     if "rms_by_curve_after" not in res:
         return float("nan")
-    cases = out / "cases"
-    spec = read_specimens(cases / f"{res['case']}_specimens.csv")
-    obs = observations(read_recordings(cases / f"{res['case']}_recordings.csv", spec))
     total, n = 0.0, 0
     for (c, ch), g in obs.groupby(["curve", "channel"], sort=False):
         sigma = noise * float(np.abs(g["value"]).max())
         total += len(g) * (res["rms_by_curve_after"][f"{c}/{ch}"]["rms"] / sigma) ** 2
         n += len(g)
     return math.sqrt(total / n)
+
+
+def _case_observations(out: Path, name: str) -> pd.DataFrame:
+    """Observations of a case's recordings as stored in DIR/cases/."""
+    from identification.recordings import read_recordings, read_specimens
+
+    cases = out / "cases"
+    spec = read_specimens(cases / f"{name}_specimens.csv")
+    return observations(read_recordings(cases / f"{name}_recordings.csv", spec))
 
 
 def rescore(out: str | Path) -> dict:
@@ -323,7 +329,8 @@ def rescore(out: str | Path) -> dict:
     cases = [Case(n, labels[n]["effect"], labels[n]["values"], labels[n]["size"],
                   labels[n]["base_misfit_over_noise"]) for n in names]
     res = [dict(results[n], case=n) for n in names]
-    summary = score(cases, res, classes, [_rms_over_true_noise(out, r) for r in res])
+    summary = score(cases, res, classes, [_rms_over_true_noise(_case_observations(out, n), r)
+                                          for n, r in zip(names, res, strict=True)])
     write_json_atomic(out / "summary.json", summary, indent=1)
     write_text_atomic(out / "summary.md", summary_markdown(summary))
     return summary

@@ -28,6 +28,8 @@ from .homogeneous import UNIAXIAL_CURVES, HomogeneousSimulator
 from .simulators import FESimulator
 
 log = logging.getLogger(__name__)
+# what the FE model of the glued specimen depends on (the offsets act on the records)
+FE_PARAMETERS = ("mu_0", "alpha_0", "nu0", "log10_k")
 
 
 class GluedCubeSimulator:
@@ -64,9 +66,8 @@ class GluedCubeSimulator:
         for j, n in enumerate(names):
             if n in hom_names:
                 J[:, j] = jh[:, hom_names.index(n)]
-        fe_names = [n for n in names if n in ("mu_0", "alpha_0", "nu0", "log10_k")]
-        fe_vals = {k: v for k, v in values.items()
-                   if k in ("mu_0", "alpha_0", "nu0", "log10_k")}
+        fe_names = [n for n in names if n in FE_PARAMETERS]
+        fe_vals = {k: v for k, v in values.items() if k in FE_PARAMETERS}
         yf, jf = self._fe.predict(fe_vals, fe_names)
         # offsets of the measurement layer act on the recorded values, not on the physics
         y[self._uni] = yf + float(values.get("stress_offset", 0.0))
