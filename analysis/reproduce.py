@@ -73,7 +73,8 @@ def reproduce(out: str, profile: str = "quick", *, bank: str = BANK,
     """Run (or resume) every stage; returns the summary also written to summary.json."""
     from mpi4py import MPI
 
-    from brain_fe.sampling import SampleSpec, load_samples, read_manifest, run_sampling
+    from brain_fe.sampling import SampleSpec, run_sampling
+    from brain_fe.store import load_samples, read_manifest
     from identification.batch import identify_all
     from surrogate.train import train_all
 

@@ -56,7 +56,8 @@ def main():
     import dolfinx
 
     from brain_fe import geometry
-    from brain_fe.model import ForwardModel, MaterialParameters
+    from brain_fe.materials import MaterialParameters
+    from brain_fe.model import ForwardModel
     from brain_fe.protocols import Protocol, compression_tension, torsion
 
     res = {"machine": f"{os.cpu_count()} cores, {cpu_model()}", "dolfinx": dolfinx.__version__,

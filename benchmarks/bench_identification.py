@@ -36,25 +36,32 @@ def main():
     from brain_fe import geometry
     from brain_fe.model import ForwardModel
     from identification.fit import identify
-    from identification.objective import curves_from_recordings, residuals
-    from identification.simulators import FESimulator, SurrogateSimulator
-    from identification.synthetic import make_recordings
+    from identification.objective import identification_obs, residuals
+    from recordings.synthetic import make_recordings
+    from simulators.fe import FESimulator
+    from simulators.surrogate import SurrogateSimulator
     from surrogate.persist import load_surrogates
 
     fm = ForwardModel(geometry.axisymmetric())
+    models: dict = {}
     spec = pd.DataFrame({"specimen": [f"S{i}" for i in range(len(TRUTH))], "region": "R",
                          "brain": "B", "radius_mm": 4.0, "height_mm": 5.0})
     truth = pd.DataFrame({"specimen": spec.specimen, "mu_kPa": [t[0] for t in TRUTH],
                           "alpha": [t[1] for t in TRUTH]})
     rec = make_recordings(spec, truth, noise=0.01, seed=5, model_cache={(4.0, 5.0): fm})
-    sur = SurrogateSimulator(load_surrogates(a.surrogates), radius_mm=4.0, height_mm=5.0,
-                             nu0=0.49)
+    bundles = load_surrogates(a.surrogates)
     rows = []
+
+    def fe_sim(obs):
+        return FESimulator(obs, 4.0, 5.0, nu0=0.49, path="branches", geometry=fm.geometry,
+                           models=models)
+
     for (mu, alpha), sid in zip(TRUTH, spec.specimen, strict=True):
-        curves = curves_from_recordings(rec[rec.specimen == sid], 4.0)
-        fe = FESimulator(4.0, 5.0, 0.49, forward_model=fm)
+        obs = identification_obs(rec[rec.specimen == sid])
+        sur = SurrogateSimulator(obs, bundles, radius_mm=4.0, height_mm=5.0, nu0=0.49)
+        fe = fe_sim(obs)
         t0 = time.perf_counter()
-        res = identify(curves, sur, fe, fit="all")
+        res = identify(sur, fe, fit="all")
         rows.append({"truth": f"({mu}, {alpha})", "method": "two-stage (surrogate + FE TRF)",
                      "fe_solves": res.stage2.protocol_solves,
                      "wall_s": time.perf_counter() - t0, "objective": res.stage2.objective,
@@ -63,19 +70,20 @@ def main():
         for label, start in (("FE-only Nelder-Mead, same start", (res.stage1.mu_kPa,
                                                                   res.stage1.alpha)),
                              ("FE-only Nelder-Mead, neutral start", (1.0, -10.0))):
-            fe = FESimulator(4.0, 5.0, 0.49, forward_model=fm)
+            fe = fe_sim(obs)
 
-            def f(z, fe=fe, curves=curves):
+            def f(z, fe=fe, obs=obs):
                 if z[1] >= -0.1:
                     return 1e3
-                r = residuals(curves, fe(curves, float(np.exp(z[0])), float(z[1])))
+                y = fe.predict({"mu_0": float(np.exp(z[0])), "alpha_0": float(z[1])}).y
+                r = residuals(obs, y)
                 return float(r @ r)
 
             t0 = time.perf_counter()
             o = minimize(f, [np.log(start[0]), start[1]], method="Nelder-Mead",
                          options={"xatol": 1e-5, "fatol": 1e-10, "maxfev": 400})
             rows.append({"truth": f"({mu}, {alpha})", "method": label,
-                         "fe_solves": fe.protocol_solves, "wall_s": time.perf_counter() - t0,
+                         "fe_solves": fe.solves, "wall_s": time.perf_counter() - t0,
                          "objective": o.fun, "mu_err_%": 100 * (np.exp(o.x[0]) / mu - 1),
                          "alpha_err_%": 100 * (o.x[1] / alpha - 1)})
         print(pd.DataFrame(rows[-3:]).to_string(index=False))

@@ -31,7 +31,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 def configurations():
     from brain_fe.artefacts import NAMES, Artefacts
-    from brain_fe.model import MaterialParameters
+    from brain_fe.ends import Interface
+    from brain_fe.materials import MaterialParameters
 
     base = {"mu": (1.0,), "alpha": (-20.0,), "nu0": 0.49}
 
@@ -48,7 +49,7 @@ def configurations():
                                []),
         "mullins": ({"mullins": True}, p(softening=0.5, softening_m_kPa=0.05), None, []),
         "ogden 2 terms": ({"n_terms": 2}, p(mu=(0.5, 0.5), alpha=(-20.0, 5.0)), None, []),
-        "springs": ({"ends": "springs"}, p(k_r_kPa_mm=100.0, k_theta_kPa_mm=100.0), None,
+        "springs": ({"ends": "springs"}, p().values() | Interface(100.0, 100.0).values(), None,
                     []),
         "artefacts (stretch offset)": ({}, p(), Artefacts(stretch_offset=0.01), list(NAMES)),
     }

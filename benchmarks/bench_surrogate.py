@@ -28,7 +28,8 @@ def main():
     a = ap.parse_args()
 
     from brain_fe import geometry
-    from brain_fe.model import ForwardModel, MaterialParameters
+    from brain_fe.materials import MaterialParameters
+    from brain_fe.model import ForwardModel
     from brain_fe.protocols import compression_tension, torsion
     from surrogate.persist import load_surrogates
 

@@ -21,7 +21,8 @@ import numpy as np
 import pandas as pd
 
 from brain_fe import geometry
-from brain_fe.model import ForwardModel, MaterialParameters
+from brain_fe.materials import MaterialParameters
+from brain_fe.model import ForwardModel
 from brain_fe.protocols import Protocol
 
 QUANTITIES = {

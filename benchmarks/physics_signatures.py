@@ -29,7 +29,9 @@ import numpy as np  # noqa: E402
 
 from brain_fe import geometry  # noqa: E402
 from brain_fe.artefacts import Artefacts  # noqa: E402
-from brain_fe.model import ForwardModel, MaterialParameters  # noqa: E402
+from brain_fe.ends import Interface  # noqa: E402
+from brain_fe.materials import MaterialParameters  # noqa: E402
+from brain_fe.model import ForwardModel  # noqa: E402
 from brain_fe.protocols import compression_tension, torsion  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -61,7 +63,7 @@ EXTENSIONS = {
         ("nu0 = 0.45, U = log", {"volumetric": "log"}, _p(nu0=0.45), None, BOTH)]),
     "gluing": ("Compliant glue layer (k_r = k_theta = k) and frictionless plates", [
         (f"springs k = {k:g} kPa/mm", {"ends": "springs"},
-         _p(k_r_kPa_mm=k, k_theta_kPa_mm=k), None, BOTH) for k in (10.0, 100.0, 1000.0)]
+         _p().values() | Interface(k, k).values(), None, BOTH) for k in (10.0, 100.0, 1000.0)]
         + [("slip (frictionless)", {"ends": "slip"}, _p(), None, ("compression_tension",))]),
     "artefacts": ("Measurement artefacts (machine assumes H = 5 mm, R = 4 mm, zero offsets)", [
         ("height_rel = +0.05", {}, _p(), Artefacts(height_rel=0.05), BOTH),

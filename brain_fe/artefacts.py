@@ -17,9 +17,10 @@ Every value's neutral value is 0, which reproduces the bare model exactly.
 from __future__ import annotations
 
 import contextlib
+import math
 from dataclasses import asdict, dataclass
 
-import numpy as np
+from .vocabulary import channel_values
 
 NAMES = ("height_rel", "radius_rel", "stretch_offset", "force_offset", "torque_offset")
 GEOMETRIC = ("height_rel", "radius_rel", "stretch_offset")  # need another solve to differentiate
@@ -36,6 +37,9 @@ class Artefacts:
     torque_offset_mNmm: float = 0.0
 
     def __post_init__(self):
+        for name, v in self.values().items():
+            if not math.isfinite(v):
+                raise ValueError(f"{name} must be a finite number")
         for name in ("height_rel", "radius_rel"):
             if not -0.5 < getattr(self, name) < 0.5:
                 raise ValueError(f"{name} must lie in (-0.5, 0.5)")
@@ -79,10 +83,4 @@ def scaled_mesh(geometry, art: Artefacts):
 
 def offset_channels(test: str, radius_mm: float, art: Artefacts) -> dict[str, float]:
     """Additive offsets of every reported channel (the load-cell offsets)."""
-    area = np.pi * radius_mm**2
-    if test == "compression_tension":
-        return {"nominal_stress_kPa": art.force_offset_mN / area,
-                "axial_force_mN": art.force_offset_mN}
-    return {"torque_mNmm": art.torque_offset_mNmm,
-            "shear_stress_kPa": 2.0 * art.torque_offset_mNmm / (np.pi * radius_mm**3),
-            "axial_force_mN": art.force_offset_mN}
+    return channel_values(test, art.force_offset_mN, art.torque_offset_mNmm, radius_mm)

@@ -1,13 +1,23 @@
 """Specimen geometries: the (R, Z) half-plane of the axisymmetric model and the 3D gmsh cylinder.
 
-Both are dataclasses holding the mesh, named facet markers and the integration measure
-with an explicit quadrature degree (the automatic estimate explodes for spectral
-materials).  Lengths in mm.
+Both are dataclasses holding the mesh, named facet markers, the integration measure with an
+explicit quadrature degree (the automatic estimate explodes for spectral materials) and
+their kinematics: the deformation gradient of the displacement unknowns and the volume
+weight.  Lengths in mm.
+
+Axisymmetric with twist (DESIGN.md section 3): unknowns w = (u_r, u_z, phi) on the (R, Z)
+rectangle, r = R + u_r, z = Z + u_z; with rows (e_r, e_theta, e_z) and columns
+(E_R, E_Theta, E_Z)::
+
+    F = [[1 + du_r/dR,  0,    du_r/dZ    ],
+         [r dphi/dR,    r/R,  r dphi/dZ  ],
+         [du_z/dR,      0,    1 + du_z/dZ]]      dV = 2 pi R dR dZ
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,7 +32,9 @@ log = logging.getLogger(__name__)
 BOTTOM, TOP, LATERAL, AXIS = 1, 2, 3, 4
 GRADING_R, GRADING_Z = 0.9, 0.95
 RIM_SIZE_FACTOR = 0.15  # 3D: element size at the glued rims relative to the bulk
-DEFAULT_REFINEMENT = 2  # <= 1 % force error on the default protocols (BENCHMARKS.md)
+# <= 1 % force error on the default protocols (BENCHMARKS.md)
+DEFAULT_REFINEMENT = {"axisymmetric": 2, "3d": 2}
+KINDS = tuple(DEFAULT_REFINEMENT)
 
 
 @dataclass(frozen=True)
@@ -57,6 +69,23 @@ class Geometry:
     def fdim(self) -> int:
         return self.mesh.topology.dim - 1
 
+    def deformation_gradient(self, u):
+        """F of the displacement unknowns ``u`` (axisymmetric: (u_r, u_z, phi))."""
+        if self.kind != "axisymmetric":
+            return ufl.Identity(3) + ufl.grad(u)
+        R = ufl.SpatialCoordinate(self.mesh)[0]
+        g = ufl.grad(u)
+        r = R + u[0]
+        return ufl.as_matrix([[1 + g[0, 0], 0, g[0, 1]],
+                              [r * g[2, 0], r / R, r * g[2, 1]],
+                              [g[1, 0], 0, 1 + g[1, 1]]])
+
+    def volume_weight(self):
+        """dV / (dx of the mesh): 2 pi R on the axisymmetric half-plane, 1 in 3D."""
+        if self.kind != "axisymmetric":
+            return 1.0
+        return 2 * math.pi * ufl.SpatialCoordinate(self.mesh)[0]
+
 
 def _tag_facets(msh, locators: dict[int, callable]):
     fdim = msh.topology.dim - 1
@@ -73,19 +102,24 @@ def _tag_facets(msh, locators: dict[int, callable]):
     return dmesh.meshtags(msh, fdim, idx.astype(np.int32), vals[order][first])
 
 
+def _check(radius_mm: float, height_mm: float, refinement) -> int:
+    if not (math.isfinite(radius_mm) and math.isfinite(height_mm)
+            and radius_mm > 0 and height_mm > 0):
+        raise ValueError("radius and height must be positive numbers")
+    if int(refinement) != refinement or refinement < 1:
+        raise ValueError(f"refinement must be a whole number >= 1, got {refinement}")
+    return int(refinement)
+
+
 def axisymmetric(radius_mm: float = 4.0, height_mm: float = 5.0,
-                 refinement: int = DEFAULT_REFINEMENT,
+                 refinement: int = DEFAULT_REFINEMENT["axisymmetric"],
                  comm=MPI.COMM_WORLD, quadrature_degree: int = 4) -> Geometry:
     """Structured quadrilateral mesh of the (R, Z) rectangle, graded towards the glued
     rim (R = radius, Z in {0, H}) where the edge singularity sits.
 
     ``refinement`` k gives 4k x 5k cells (Q2 displacement + twist on top of it).
     """
-    if radius_mm <= 0 or height_mm <= 0:
-        raise ValueError("radius and height must be positive")
-    k = int(refinement)
-    if k < 1:
-        raise ValueError("refinement must be >= 1")
+    k = _check(radius_mm, height_mm, refinement)
     nr, nz = 4 * k, max(2, round(5 * k * height_mm / (1.25 * radius_mm)))
     msh = dmesh.create_rectangle(comm, [np.array([0.0, 0.0]), np.array([1.0, 1.0])], [nr, nz],
                                  cell_type=dmesh.CellType.quadrilateral)
@@ -118,11 +152,7 @@ def cylinder3d(radius_mm: float = 4.0, height_mm: float = 5.0, refinement: int =
     """
     import gmsh
 
-    if radius_mm <= 0 or height_mm <= 0:
-        raise ValueError("radius and height must be positive")
-    k = int(refinement)
-    if k < 1:
-        raise ValueError("refinement must be >= 1")
+    k = _check(radius_mm, height_mm, refinement)
     h = radius_mm / (2.0 * k)
     gmsh.initialize()
     try:
@@ -175,3 +205,13 @@ def cylinder3d(radius_mm: float = 4.0, height_mm: float = 5.0, refinement: int =
     ncells = msh.topology.index_map(3).size_global
     log.info("3D cylinder R=%g H=%g k=%d: %d cells", radius_mm, height_mm, k, ncells)
     return Geometry("3d", msh, ft, radius_mm, height_mm, k, quadrature_degree, markers)
+
+
+def make(kind: str = "axisymmetric", radius_mm: float = 4.0, height_mm: float = 5.0,
+         refinement: int | None = None, comm=MPI.COMM_WORLD) -> Geometry:
+    """The geometry of ``kind`` (``axisymmetric`` or ``3d``) at its default refinement."""
+    if kind not in KINDS:
+        raise ValueError(f"model must be 'axisymmetric' or '3d', got {kind!r}")
+    k = DEFAULT_REFINEMENT[kind] if refinement is None else refinement
+    return (axisymmetric if kind == "axisymmetric" else cylinder3d)(radius_mm, height_mm, k,
+                                                                      comm=comm)

@@ -10,13 +10,22 @@ after every segment (branch ``hold``) gives relaxation tests for rate-dependent 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-TESTS = ("compression_tension", "torsion")
-NEUTRAL = {"compression_tension": 1.0, "torsion": 0.0}
-CONTROL = {"compression_tension": "stretch", "torsion": "shear"}
+from .vocabulary import (
+    COMPRESSION_TENSION,
+    CONTROL,
+    DEFAULT_AMPLITUDE,
+    HOLD,
+    LOADING,
+    NEUTRAL,
+    TORSION,
+    UNLOADING,
+    check_test,
+)
 
 
 @dataclass(frozen=True)
@@ -53,17 +62,21 @@ class Protocol:
     hold_points: int = 10
 
     def __post_init__(self):
-        if self.test not in TESTS:
-            raise ValueError(f"unknown test {self.test!r}; expected one of {', '.join(TESTS)}")
+        check_test(self.test)
         if len(self.waypoints) < 2:
             raise ValueError("a protocol needs at least two waypoints")
+        if not all(math.isfinite(w) for w in self.waypoints):
+            raise ValueError("protocol waypoints must be finite numbers")
         if not np.isclose(self.waypoints[0], NEUTRAL[self.test]):
             raise ValueError(f"{self.test} protocols start at {NEUTRAL[self.test]}")
+        for name in ("rate_per_s", "max_increment", "hold_s"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"{name} must be a finite number")
         if self.rate_per_s <= 0 or self.max_increment <= 0 or self.cycles < 1:
             raise ValueError("rate, increment and cycles must be positive")
         if self.hold_s < 0 or self.hold_points < 1:
             raise ValueError("hold_s must be >= 0 and hold_points >= 1")
-        if self.test == "compression_tension" and min(self.waypoints) <= 0.0:
+        if self.test == COMPRESSION_TENSION and min(self.waypoints) <= 0.0:
             raise ValueError("stretch must stay positive")
 
     @property
@@ -77,13 +90,13 @@ class Protocol:
     def steps(self) -> list[Step]:
         """Output points, the initial state first."""
         neutral = NEUTRAL[self.test]
-        out = [Step(0.0, 1, "loading", float(self.waypoints[0]))]
+        out = [Step(0.0, 1, LOADING, float(self.waypoints[0]))]
         t = 0.0
         for cycle in range(1, self.cycles + 1):
             for a, b in zip(self.waypoints[:-1], self.waypoints[1:], strict=True):
                 if np.isclose(a, b):
                     continue
-                branch = "loading" if abs(b - neutral) > abs(a - neutral) else "unloading"
+                branch = LOADING if abs(b - neutral) > abs(a - neutral) else UNLOADING
                 n = max(1, int(np.ceil(abs(b - a) / self.max_increment - 1e-9)))
                 for i in range(1, n + 1):
                     v = a + (b - a) * i / n
@@ -91,30 +104,85 @@ class Protocol:
                 t += abs(b - a) / self.rate_per_s
                 if self.hold_s > 0:
                     for i in range(1, self.hold_points + 1):
-                        out.append(Step(t + self.hold_s * i / self.hold_points, cycle, "hold",
+                        out.append(Step(t + self.hold_s * i / self.hold_points, cycle, HOLD,
                                         float(b)))
                     t += self.hold_s
         return out
 
 
+def plate_position(test: str, value: float, preload: float, height_mm: float,
+                   radius_mm: float) -> tuple[float, float]:
+    """(axial displacement [mm], rotation [rad]) of the top plate at ``value`` of the
+    controlled quantity, on top of an axial ``preload`` stretch offset: the kinematics that
+    define each test (torsion runs at the height (1 + preload) H)."""
+    if test == COMPRESSION_TENSION:
+        return (value + preload - 1.0) * height_mm, 0.0
+    if test == TORSION:
+        return preload * height_mm, value * height_mm / radius_mm
+    raise ValueError(f"no plate motion defined for test {test!r}")
+
+
 def compression_tension(amplitude: float = 0.15, **kw) -> Protocol:
     """1 -> 1 - A -> 1 -> 1 + A -> 1."""
-    if not 0 < amplitude < 1:
+    if not (math.isfinite(amplitude) and 0 < amplitude < 1):
         raise ValueError(f"compression/tension amplitude must lie in (0, 1), got {amplitude}")
-    return Protocol("compression_tension", (1.0, 1.0 - amplitude, 1.0, 1.0 + amplitude, 1.0), **kw)
+    return Protocol(COMPRESSION_TENSION, (1.0, 1.0 - amplitude, 1.0, 1.0 + amplitude, 1.0),
+                    **kw)
 
 
 def torsion(gamma_max: float = 0.30, **kw) -> Protocol:
     """0 -> gamma_max -> 0 at fixed height."""
-    if not 0 < gamma_max:
+    if not (math.isfinite(gamma_max) and 0 < gamma_max):
         raise ValueError(f"torsion amplitude must be positive, got {gamma_max}")
     kw.setdefault("max_increment", gamma_max / 10)
-    return Protocol("torsion", (0.0, gamma_max, 0.0), **kw)
+    return Protocol(TORSION, (0.0, gamma_max, 0.0), **kw)
 
 
-def default_protocol(test: str, amplitude: float | None = None) -> Protocol:
-    if test == "compression_tension":
-        return compression_tension(0.15 if amplitude is None else amplitude)
-    if test == "torsion":
-        return torsion(0.30 if amplitude is None else amplitude)
-    raise ValueError(f"unknown test {test!r}; expected one of {', '.join(TESTS)}")
+def make(test: str, amplitude: float | None = None, **kw) -> Protocol:
+    """The standard protocol of ``test`` (default amplitudes 0.15 and 0.30); ``kw`` as
+    :class:`Protocol` (``rate_per_s``, ``cycles``, ``hold_s``, ``max_increment``)."""
+    check_test(test)
+    a = DEFAULT_AMPLITUDE[test] if amplitude is None else amplitude
+    return (compression_tension if test == COMPRESSION_TENSION else torsion)(a, **kw)
+
+
+@dataclass
+class RecordedPath:
+    """The recorded (time, control) points of one test as a protocol for the forward model:
+    the model follows the piecewise-linear path through them and reports at every one."""
+
+    test: str
+    amplitude: float
+    points: list[Step]
+    rate_per_s: float
+
+    @property
+    def control(self) -> str:
+        return CONTROL[self.test]
+
+    def steps(self) -> list[Step]:
+        return self.points
+
+    @classmethod
+    def through(cls, test: str, amplitude: float, time_s, control, cycle, branch,
+                default_rate: float = 0.01) -> tuple[RecordedPath, np.ndarray]:
+        """Path through recorded points and, for each point, its step index.  A path that
+        does not start at the neutral value starts from the undeformed state at the median
+        recorded rate; without a clock (NaN times) the rate is ``default_rate``."""
+        t = np.asarray(time_s, float)
+        x = np.asarray(control, float)
+        if np.isnan(t).any():  # no clock: assume the default rate
+            t = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(x)))]) / default_rate
+        steps = [Step(float(ti), int(c), str(b), float(xi))
+                 for ti, c, b, xi in zip(t, cycle, branch, x, strict=True)]
+        index = np.arange(len(steps))
+        dt = np.diff(t)
+        moving = (dt > 0) & (np.abs(np.diff(x)) > 0)
+        rate = float(np.median(np.abs(np.diff(x))[moving] / dt[moving])) if moving.any() \
+            else default_rate
+        neutral = NEUTRAL[test]
+        if not np.isclose(x[0], neutral):  # start from the undeformed state
+            steps.insert(0, Step(float(t[0] - abs(x[0] - neutral) / rate), 1, LOADING,
+                                 neutral))
+            index = index + 1
+        return cls(test, float(amplitude), steps, rate), index

@@ -21,16 +21,22 @@ import numpy as np
 import pandas as pd
 from mpi4py import MPI
 
-from brain_fe.api import make_geometry
+from brain_fe import geometry as geo
 from brain_fe.io import write_json_atomic, write_text_atomic
+from brain_fe.model import ForwardModel
+from brain_fe.parallel import as_progress, gather_all
+from brain_fe.parameters import Param
 from brain_fe.protocols import compression_tension, torsion
 from brain_fe.solver import ConvergenceError
+from recordings.observations import observations, peak_per_series
+from recordings.synthetic import record
+from recordings.tables import read_recordings, read_specimens
+from simulators.coordinates import model_point
+from simulators.fe import FESimulator
 
-from .api import progress_callback
 from .effects import BASE_NAMES, EFFECTS
-from .engine import diagnose, fit
-from .observations import observations
-from .simulators import FESimulator, material_from_values
+from .engine import diagnose
+from .fitting import fit
 
 log = logging.getLogger(__name__)
 CLASSES = tuple(EFFECTS) + ("none",)
@@ -55,19 +61,21 @@ MAX_SIZE = {"viscoelastic": 10.0, "mullins": 3.0, "ogden_2term": 10.0,
 def effect_values(effect: str, size: float, shape: dict) -> dict:
     """Extra parameter values of ``effect`` at scalar ``size`` (0 = neutral)."""
     if effect == "viscoelastic":
-        return {"beta_0": size * 0.3, "log10_tau_0": shape["log10_tau"]}
-    if effect == "mullins":
-        return {"softening": min(size * 0.3, 0.9), "log10_softening_m": shape["log10_m"]}
-    if effect == "ogden_2term":
-        return {"mu_1": size * 0.1 * shape["mu"], "alpha_1": shape["alpha_1"]}
-    if effect == "compressibility":
-        return {"nu0": 0.49 - min(size * 0.03, 0.25)}
-    if effect == "imperfect_gluing":
-        return {"log10_k": math.log10(shape["k"] / max(size, 1e-6))}
-    if effect == "artefacts":
-        return {"stretch_offset": size * shape["offset"], "force_offset": 0.0,
-                "torque_offset": 0.0}
-    return {}
+        v = {"beta_0": size * 0.3, "log10_tau_0": shape["log10_tau"]}
+    elif effect == "mullins":
+        v = {"softening": min(size * 0.3, 0.9), "log10_softening_m": shape["log10_m"]}
+    elif effect == "ogden_2term":
+        v = {"mu_1": size * 0.1 * shape["mu"], "alpha_1": shape["alpha_1"]}
+    elif effect == "compressibility":
+        v = {"nu0": 0.49 - min(size * 0.03, 0.25)}
+    elif effect == "imperfect_gluing":
+        v = {"log10_k": math.log10(shape["k"] / max(size, 1e-6))}
+    elif effect == "artefacts":
+        v = {"stretch_offset": size * shape["offset"], "force_offset": 0.0,
+             "torque_offset": 0.0}
+    else:
+        v = {}
+    return {Param.parse(k): x for k, x in v.items()}
 
 
 def _shape(effect, rng, mu):
@@ -87,14 +95,12 @@ class Case:
 
 def _recordings(values, protocols, geometry_truth, name, noise, rng, nu0=0.49):
     """Recordings of the full protocol from the truth model (finer mesh)."""
-    from brain_fe.model import ForwardModel
-    from identification.synthetic import record
-
-    params, art = material_from_values(values, nu0)
-    fm = ForwardModel(geometry_truth, n_terms=len(params.mu), maxwell=params.maxwell,
-                      mullins="softening" in values,
-                      ends="springs" if "log10_k" in values else "glued")
-    return record(fm, params, protocols, name, noise=noise, rng=rng, artefacts=art)
+    pt = model_point(values, nu0)
+    ph = pt.physics
+    fm = ForwardModel(geometry_truth, n_terms=ph.n_terms, maxwell=ph.maxwell,
+                      mullins=ph.softening, ends="springs" if ph.springs else "glued")
+    return record(fm, pt.material, protocols, name, noise=noise, rng=rng,
+                  artefacts=pt.artefacts, interface=pt.interface)
 
 
 def make_case(i: int, effect: str, rng, *, refinement: int, truth_refinement: int,
@@ -102,11 +108,11 @@ def make_case(i: int, effect: str, rng, *, refinement: int, truth_refinement: in
     """One calibrated case: (recordings, specimens row, Case label)."""
     name = f"case{i:03d}"
     mu = float(np.exp(rng.uniform(np.log(0.5), np.log(2.0))))
-    base = {"mu_0": mu, "alpha_0": float(rng.uniform(-25, -8))}
+    base = {Param("mu", 0): mu, Param("alpha", 0): float(rng.uniform(-25, -8))}
     shape = _shape(effect, rng, mu)
     g_truth = models.setdefault(("g", truth_refinement),
-                                make_geometry("axisymmetric", 4.0, 5.0, truth_refinement,
-                                              comm=MPI.COMM_SELF))
+                                geo.make("axisymmetric", 4.0, 5.0, truth_refinement,
+                                         comm=MPI.COMM_SELF))
     size, misfit = 0.0, 0.0
     for draw in range(3 if effect != "none" else 0):
         if draw:  # this shape could not be made visible within the size caps: draw another
@@ -115,7 +121,7 @@ def make_case(i: int, effect: str, rng, *, refinement: int, truth_refinement: in
             shape = _shape(effect, rng, mu)
         size = 1.0
         for attempt in range(4):  # calibrate the size: misfit ~ linear in size when small
-            values = dict(base, **effect_values(effect, size, shape))
+            values = {**base, **effect_values(effect, size, shape)}
             clean = _recordings(values, protocols, g_truth, name, 0.0, rng)
             obs = observations(clean)
             sim = FESimulator(obs, 4.0, 5.0, refinement=refinement)
@@ -123,9 +129,7 @@ def make_case(i: int, effect: str, rng, *, refinement: int, truth_refinement: in
             y_f, _ = fine.predict(base, [])
             y_c, _ = sim.predict(base, [])
             sim.correction = y_f - y_c
-            peak = obs.groupby(["curve", "channel"])["value"].transform(
-                lambda v: np.abs(v).max()).to_numpy()
-            sigma = noise * peak
+            sigma = noise * peak_per_series(obs)
             f = fit(sim, obs, sigma, base, list(BASE_NAMES), max_nfev=30)
             misfit = float(np.sqrt(np.mean(f.z**2)))
             log.info("%s %s size %.3g: base misfit %.2f x noise", name, effect, size, misfit)
@@ -138,11 +142,11 @@ def make_case(i: int, effect: str, rng, *, refinement: int, truth_refinement: in
             size = new
         if 2.5 <= misfit <= 4.5:
             break
-    values = dict(base, **effect_values(effect, size, shape))
+    values = {**base, **effect_values(effect, size, shape)}
     rec = _recordings(values, protocols, g_truth, name, noise, rng)
     spec = pd.DataFrame({"specimen": [name], "region": ["synthetic"], "brain": ["B0"],
                          "radius_mm": [4.0], "height_mm": [5.0]})
-    return rec, spec, Case(name, effect, {k: float(v) for k, v in values.items()}, size,
+    return rec, spec, Case(name, effect, {str(k): float(v) for k, v in values.items()}, size,
                            misfit)
 
 
@@ -175,8 +179,7 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
                 and json.loads((out / "config.json").read_text()) == config)
     if reusable and (out / "results.json").exists():
         previous = json.loads((out / "results.json").read_text())
-    bar, step = progress_callback(progress, comm, "diagnosis benchmark (rank 0's cases)",
-                                  "case")
+    bar = as_progress(progress, None, "diagnosis benchmark (rank 0's cases)", "case", comm)
     if comm.rank == 0:
         (out / "cases").mkdir(parents=True, exist_ok=True)
         write_json_atomic(out / "config.json", config, indent=1)
@@ -219,11 +222,9 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
         mine.append((case, res, _rms_over_true_noise(obs, res)))
         log.info("%s: truth %s, verdict %s (%.0f s)", case.name, case.effect, res["verdict"],
                  res["elapsed_s"])
-        if step:
-            step(f"{case.name} {case.effect} -> {res['verdict']}")
-    if bar is not None:
-        bar.close()
-    allres = [x for part in comm.allgather(mine) for x in part]
+        bar.update(1, f"{case.name} {case.effect} -> {res['verdict']}")
+    bar.close()
+    allres = gather_all(comm, mine)
     summary = score([c for c, _, _ in allres], [r for _, r, _ in allres], classes,
                     [t for _, _, t in allres])
     if comm.rank == 0:
@@ -307,8 +308,6 @@ def _rms_over_true_noise(obs: pd.DataFrame, res: dict, noise: float = 0.01) -> f
 
 def _case_observations(out: Path, name: str) -> pd.DataFrame:
     """Observations of a case's recordings as stored in DIR/cases/."""
-    from identification.recordings import read_recordings, read_specimens
-
     cases = out / "cases"
     spec = read_specimens(cases / f"{name}_specimens.csv")
     return observations(read_recordings(cases / f"{name}_recordings.csv", spec))
@@ -345,7 +344,7 @@ def score(cases, results, classes, rms_true=None) -> dict:
     for c, r in zip(cases, results, strict=True):
         conf.loc[c.effect, r["verdict"]] += 1
         if c.effect != "none" and r["verdict"] == c.effect:
-            for n in EFFECTS[c.effect].names:
+            for n in map(str, EFFECTS[c.effect].names):
                 if n in r["refit_parameters"] and abs(c.values.get(n, 0.0)) > 0:
                     recovery.append({"case": c.name, "parameter": n, "truth": c.values[n],
                                      "fitted": r["refit_parameters"][n]})

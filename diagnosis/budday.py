@@ -1,103 +1,77 @@
-"""Reader for the region-averaged human brain curves of Budday et al. (2017).
-
-The data live outside the project (``../shared/data/budday2017/budday2017_averaged.csv``,
-validation only, never copied into the repository); code using them must skip cleanly when
-:func:`available` is False.
-
-File columns: ``region`` (CX | CR | BG | CC), ``test`` (tension | compression |
-simple_shear), ``strain_measure`` (stretch | shear), ``value`` (stretch [-] or amount of
-shear [-]), ``nominal_stress_kPa`` (P11 or P12 [kPa]).
-"""
+"""The averaged human-brain curves of Budday et al. (2017), diagnosed region by region with
+the homogeneous analytical base model (the cube tests were reduced as if homogeneous) and
+the glued-end candidate (:mod:`simulators.glued_cube`)."""
 
 from __future__ import annotations
 
-import csv
 import logging
-import math
 from pathlib import Path
 
-import pandas as pd
+import numpy as np
 
-logger = logging.getLogger(__name__)
+from brain_fe.io import write_json_atomic, write_text_atomic
+from recordings.budday import DATA_PATH, read_budday
+from simulators.glued_cube import GluedCubeSimulator
+from simulators.homogeneous import HomogeneousSimulator
 
-DATA_PATH = (Path(__file__).resolve().parents[1].parent
-             / "shared/data/budday2017/budday2017_averaged.csv")
+from . import report
+from .effects import BASE_NAMES
+from .engine import diagnose
+from .fitting import fit
 
-REGIONS = ("CX", "CR", "BG", "CC")
-TESTS = {"tension": "stretch", "compression": "stretch", "simple_shear": "shear"}
-COLUMNS = ("region", "test", "strain_measure", "value", "nominal_stress_kPa")
-OBS_COLUMNS = ("specimen", "curve", "channel", "branch", "cycle", "control", "time_s", "value")
-
-
-def available(path: str | Path = DATA_PATH) -> bool:
-    """True when the Budday et al. data file exists."""
-    return Path(path).is_file()
+log = logging.getLogger(__name__)
 
 
-def _number(text: str, path: Path, row: int, column: str) -> float:
-    try:
-        x = float(text)
-    except ValueError:
-        raise ValueError(f"{path}: row {row}, column {column}: not a number: {text!r}") from None
-    if not math.isfinite(x):
-        raise ValueError(f"{path}: row {row}, column {column}: not finite: {text!r}")
-    return x
+def diagnose_budday(path: str | None, out: str, *, nu0: float = 0.49) -> dict:
+    """One diagnosis per region, plus the one-term fit of each test alone."""
+    obs_all = read_budday(path or DATA_PATH)
+    out = Path(out)
+    results, by_test = {}, {}
+    for region, obs in obs_all.groupby("specimen", sort=False):
+        obs = obs.reset_index(drop=True)
+        sim = GluedCubeSimulator(obs, nu0=nu0)
+        d = diagnose(sim, obs)
+        results[region] = report.write(d, out / str(region),
+                                       title=f"Diagnosis of region {region} (Budday 2017)")
+        by_test[region] = _fits_by_test(obs, d, nu0)
+    summary = {r: {"verdict": v["verdict"], "one_term": v["base_parameters"],
+                   "one_term_by_test": by_test[r],
+                   "refit": v["refit_parameters"], "rms_before": v["rms_before"],
+                   "rms_after": v["rms_after"], "located": v["located"][:3]}
+               for r, v in results.items()}
+    write_json_atomic(out / "diagnosis.json", summary, indent=1)
+    write_text_atomic(out / "summary.md", _budday_table(summary))
+    return summary
 
 
-def read_budday(path: str | Path = DATA_PATH) -> pd.DataFrame:
-    """Read and validate the averaged curves as an observation table.
+def _fits_by_test(obs, d, nu0: float) -> dict:
+    """One-term fits of each test alone (same noise weights), started from the all-tests
+    fit: how far the tests disagree when each is fitted on its own."""
+    out = {}
+    mu0, a0 = BASE_NAMES
+    for curve, sub in obs.groupby("curve", sort=False):
+        rows = sub.index.to_numpy()
+        sub = sub.reset_index(drop=True)
+        f = fit(HomogeneousSimulator(sub, nu0=nu0), sub, d.sigma[rows], d.base.values,
+                list(BASE_NAMES), max_nfev=60)
+        out[str(curve)] = {"mu_0": float(f.values[mu0]), "alpha_0": float(f.values[a0]),
+                           "rms_over_noise": float(np.sqrt(np.mean(f.z**2)))}
+    return out
 
-    Returns one row per data point, in file order, with columns ``specimen`` (region),
-    ``curve`` (the ``test``), ``channel`` = "stress", ``branch`` = "loading", ``cycle`` = 1,
-    ``control`` (stretch or amount of shear [-]), ``time_s`` = NaN and ``value``
-    (nominal stress [kPa]).
 
-    Raises:
-        ValueError: one line naming the file, the row (spreadsheet numbering: the header is
-            row 1) and the column, for a missing file, missing columns, a wrong number of
-            fields, non-numeric or non-finite numbers, unknown regions or tests, a
-            strain measure that does not match the test, or a non-positive stretch.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: file not found")
-    records: list[tuple] = []
-    with path.open(newline="", encoding="utf-8") as fh:
-        reader = csv.reader(fh)
-        header = [h.strip() for h in next(reader, [])]
-        for column in COLUMNS:
-            if column not in header:
-                raise ValueError(f"{path}: row 1, column {column}: missing column "
-                                 f"(header {header})")
-        where = {c: header.index(c) for c in COLUMNS}
-        for row, fields in enumerate(reader, start=2):
-            if not any(f.strip() for f in fields):
-                continue
-            if len(fields) != len(header):
-                raise ValueError(f"{path}: row {row}, column -: {len(fields)} fields, "
-                                 f"expected {len(header)}")
-            get = {c: fields[i].strip() for c, i in where.items()}
-            if get["region"] not in REGIONS:
-                raise ValueError(f"{path}: row {row}, column region: unknown region "
-                                 f"{get['region']!r} (expected one of {REGIONS})")
-            test = get["test"]
-            if test not in TESTS:
-                raise ValueError(f"{path}: row {row}, column test: unknown test {test!r} "
-                                 f"(expected one of {tuple(TESTS)})")
-            if get["strain_measure"] != TESTS[test]:
-                raise ValueError(f"{path}: row {row}, column strain_measure: "
-                                 f"{get['strain_measure']!r} does not match test {test!r} "
-                                 f"(expected {TESTS[test]!r})")
-            control = _number(get["value"], path, row, "value")
-            if TESTS[test] == "stretch" and control <= 0.0:
-                raise ValueError(f"{path}: row {row}, column value: stretch must be positive, "
-                                 f"got {control}")
-            stress = _number(get["nominal_stress_kPa"], path, row, "nominal_stress_kPa")
-            records.append((get["region"], test, "stress", "loading", 1, control,
-                            float("nan"), stress))
-    if not records:
-        raise ValueError(f"{path}: row 2, column -: no data rows")
-    obs = pd.DataFrame.from_records(records, columns=list(OBS_COLUMNS))
-    logger.debug("read %d points (%d curves) from %s", len(obs),
-                 obs.groupby(["specimen", "curve"]).ngroups, path)
-    return obs
+def _budday_table(summary: dict) -> str:
+    tests = sorted({t for v in summary.values() for t in v["one_term_by_test"]})
+    head = ("| region | all tests: mu [kPa], alpha | "
+            + " | ".join(f"{t} alone" for t in tests)
+            + " | verdict | RMS/noise before -> after |")
+    lines = ["# One-term Ogden fits of the Budday et al. (2017) regions", "",
+             "Homogeneous analytical base model (nu0 fixed); each test alone next to the fit "
+             "of all tests together.", "", head, "|" + "---|" * (len(tests) + 4)]
+    for r, v in summary.items():
+        a = v["one_term"]
+        cells = [f"{v['one_term_by_test'][t]['mu_0']:.2f}, "
+                 f"{v['one_term_by_test'][t]['alpha_0']:.1f}"
+                 if t in v["one_term_by_test"] else "-" for t in tests]
+        lines.append(f"| {r} | {a['mu_0']:.2f}, {a['alpha_0']:.1f} | " + " | ".join(cells)
+                     + f" | {v['verdict']} | {v['rms_before']:.1f} -> {v['rms_after']:.1f} |")
+    return "\n".join(lines) + "\n"

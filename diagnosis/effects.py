@@ -18,19 +18,34 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-BASE_NAMES = ("mu_0", "alpha_0")
+from brain_fe.parameters import Param
+
+BASE_NAMES = (Param("mu", 0), Param("alpha", 0))
 
 
 @dataclass(frozen=True)
 class Effect:
+    """A candidate explanation: its extra fit parameters (coordinates of
+    :mod:`simulators.coordinates`) with bounds and start values, and what it looks like.
+    ``kinds``: the simulators that can express it (``fe``, ``homogeneous``, ``cube``)."""
+
     name: str
-    names: tuple[str, ...]
+    names: tuple[Param, ...]
     lower: tuple[float, ...]
     upper: tuple[float, ...]
     starts: tuple[dict, ...]  # start values of the extra parameters (several: multi-start)
     description: str
     signature: str  # what it looks like in data (for the report)
     kinds: tuple[str, ...] = field(default=("fe", "homogeneous"))
+
+    def __post_init__(self):
+        object.__setattr__(self, "names", tuple(Param.parse(n) for n in self.names))
+        object.__setattr__(self, "starts", tuple({Param.parse(k): v for k, v in s.items()}
+                                                 for s in self.starts))
+
+    def bounds(self, name: Param) -> tuple[float, float]:
+        i = self.names.index(name)
+        return self.lower[i], self.upper[i]
 
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
@@ -118,3 +133,17 @@ def library(kind: str) -> dict[str, Effect]:
     if kind == "homogeneous":
         lib["artefacts"] = HOMOGENEOUS_ARTEFACTS
     return lib
+
+
+def check_effects(names, kind: str) -> None:
+    """Refuse candidate names the library of ``kind`` does not have (a misspelt name must
+    never be dropped silently)."""
+    if names is None:
+        return
+    lib = library(kind)
+    unknown = [n for n in names if n not in lib]
+    if unknown:
+        raise ValueError(f"unknown candidate effect(s) {', '.join(unknown)}; known: "
+                         f"{', '.join(lib)}")
+    if not names:
+        raise ValueError("give at least one candidate effect")

@@ -2,12 +2,12 @@
 
 1. Base fit (one-term Ogden, nu0 fixed) by trust-region least squares on the residuals
    z = (prediction - recording) / sigma, sigma the noise of each (curve, channel) estimated
-   from the second differences of the base residual (diagnosis.locate), so smooth misfit
+   from the second differences of the base residual (diagnosis.noise), so smooth misfit
    does not inflate it.  The FE model's discretisation error is estimated against the next
    finer mesh at the base optimum and added to every prediction (deferred correction), so
    that it is never mistaken for physics.
 2. Locate: the base residual decomposed along the protocol's axes with chi-square and runs
-   tests (diagnosis.locate).
+   tests (diagnosis.noise).
 3. Name: every candidate effect (diagnosis.effects) is fitted from the base fit, base and
    effect parameters together, FE in the loop with sensitivities.  Nested models compared
    by the likelihood-ratio statistic chi2_base - chi2_effect ~ chi2(k_effect) (Gaussian
@@ -24,126 +24,21 @@
 from __future__ import annotations
 
 import logging
-import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from scipy import optimize, stats
+from scipy import stats
+
+from simulators.coordinates import NU0
 
 from . import locate as loc
-from .effects import BASE_NAMES, library, separating_test
+from .effects import BASE_NAMES, check_effects, library, separating_test
+from .fitting import Fit, fit, initial_guess, sigma_guess
+from .noise import estimate_noise
 
 log = logging.getLogger(__name__)
-
-BASE_BOUNDS = {"mu_0": (1e-3, 100.0), "alpha_0": (-60.0, 60.0)}
-
-
-@dataclass
-class Fit:
-    effect: str
-    names: list[str]
-    values: dict
-    chi2: float
-    n: int
-    prediction: np.ndarray
-    z: np.ndarray
-    nfev: int
-    stderr: dict = field(default_factory=dict)
-
-    @property
-    def k(self) -> int:
-        return len(self.names)
-
-    @property
-    def bic(self) -> float:
-        return self.chi2 + self.k * math.log(self.n)
-
-    @property
-    def aic(self) -> float:
-        return self.chi2 + 2 * self.k
-
-
-def _bounds(names, effect=None):
-    lo, hi = [], []
-    for n in names:
-        if n in BASE_BOUNDS:
-            a, b = BASE_BOUNDS[n]
-        else:
-            e = effect
-            i = e.names.index(n)
-            a, b = e.lower[i], e.upper[i]
-        lo.append(a)
-        hi.append(b)
-    return np.array(lo), np.array(hi)
-
-
-def fit(sim, obs: pd.DataFrame, sigma: np.ndarray, start: dict, names: list[str], *,
-        effect: str = "base", max_nfev: int = 20, effect_def=None) -> Fit:
-    """Trust-region least squares of z = (y(values) - value) / sigma over ``names``."""
-    if effect_def is None and effect != "base":
-        effect_def = library(sim.kind)[effect]
-    lo, hi = _bounds(names, effect_def)
-    x0 = np.clip([start[n] for n in names], lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
-    fixed = {k: v for k, v in start.items() if k not in names}
-    value = obs["value"].to_numpy(float)
-    cache: dict = {}
-
-    def evaluate(x):
-        key = tuple(np.round(x, 14))
-        if key not in cache:
-            vals = dict(fixed, **dict(zip(names, x, strict=True)))
-            y, J = sim.predict(vals, names)
-            cache.clear()
-            cache[key] = (y, J)
-        return cache[key]
-
-    def fun(x):
-        y, _ = evaluate(x)
-        return (y - value) / sigma
-
-    def jac(x):
-        _, J = evaluate(x)
-        return J / sigma[:, None]
-
-    res = optimize.least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf",
-                                 x_scale="jac", max_nfev=max_nfev, xtol=1e-8, ftol=1e-8)
-    vals = dict(fixed, **dict(zip(names, res.x, strict=True)))
-    y, J = evaluate(res.x)
-    z = (y - value) / sigma
-    stderr = {}
-    try:
-        Jw = J / sigma[:, None]
-        cov = np.linalg.pinv(Jw.T @ Jw)
-        stderr = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
-    except np.linalg.LinAlgError:  # pragma: no cover
-        pass
-    return Fit(effect, list(names), vals, float(z @ z), len(z), y, z, int(res.nfev), stderr)
-
-
-def initial_guess(obs: pd.DataFrame) -> dict:
-    """mu from the small-strain slope of the torque-derived shear stress (tau = mu gamma)
-    or of the nominal stress (P = 3 mu (lambda - 1)); alpha = -10."""
-    mu = 1.0
-    tor = obs[(obs.channel == "torque") & (obs.control > 0)]
-    if len(tor):
-        g = tor.nsmallest(3, "control")
-        radius = obs.attrs.get("radius_mm", 4.0)
-        tau = 2 * g["value"].to_numpy() / (math.pi * radius**3)
-        mu = float(np.median(tau / g["control"].to_numpy()))
-    else:
-        st = obs[(obs.channel == "stress") & (np.abs(obs.control - 1) > 0)
-                 & ~obs.curve.str.contains("shear")]
-        if len(st):
-            g = st.loc[np.abs(st.control - 1).nsmallest(3).index]
-            mu = float(np.median(g["value"] / (3 * (g["control"] - 1))))
-    return {"mu_0": float(np.clip(mu, 0.01, 50.0)), "alpha_0": -10.0}
-
-
-def _sigma_guess(obs: pd.DataFrame) -> np.ndarray:
-    peak = obs.groupby(["curve", "channel"])["value"].transform(lambda v: np.abs(v).max())
-    return np.maximum(0.01 * peak.to_numpy(float), 1e-12)
 
 
 @dataclass
@@ -176,8 +71,8 @@ class Diagnosis:
 
     def to_json(self) -> dict:
         w = self.winner
-        bias = {n: {"base": self.base.values[n], "refit": w.values[n],
-                    "relative": (self.base.values[n] - w.values[n]) / abs(w.values[n])}
+        bias = {str(n): {"base": self.base.values[n], "refit": w.values[n],
+                         "relative": (self.base.values[n] - w.values[n]) / abs(w.values[n])}
                 for n in BASE_NAMES}
         return {
             "located": loc.summary(self.located)["located"],
@@ -200,7 +95,7 @@ class Diagnosis:
 
 
 def _plain(d: dict) -> dict:
-    return {k: float(v) for k, v in d.items()}
+    return {str(k): float(v) for k, v in d.items()}
 
 
 def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: float = 1e-3,
@@ -212,8 +107,8 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     t0 = time.perf_counter()
     obs = obs.reset_index(drop=True)
     names = list(BASE_NAMES)
-    sigma = _sigma_guess(obs)
-    base = fit(sim, obs, sigma, dict(initial_guess(obs), nu0=sim.nu0), names, max_nfev=40)
+    sigma = sigma_guess(obs)
+    base = fit(sim, obs, sigma, {**initial_guess(obs), NU0: sim.nu0}, names, max_nfev=40)
     disc = {"corrected": False}
     if fine_sim is not None:
         y_fine, _ = fine_sim.predict(base.values, [])
@@ -222,7 +117,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         sim.correction = y_fine - y_coarse
         disc = {"corrected": True, "refinement": sim.refinement,
                 "reference_refinement": fine_sim.refinement}
-    sigma = loc.estimate_noise(obs, base.prediction - obs["value"].to_numpy(float))
+    sigma = estimate_noise(obs, base.prediction - obs["value"].to_numpy(float))
     base = fit(sim, obs, sigma, base.values, names, max_nfev=20)
     if fine_sim is not None:
         rel = np.abs(sim.correction) / sigma
@@ -232,7 +127,8 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     if progress:
         progress("base")
     lib = library(sim.kind)
-    cands = [e for e in (effects or lib) if e in lib]
+    check_effects(effects, sim.kind)
+    cands = list(effects or lib)
     rank, size = (comm.rank, comm.size) if comm is not None else (0, 1)
     mine = {}
     for i, name in enumerate(cands):
@@ -241,9 +137,9 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         e = lib[name]
         best = None
         for s in e.starts:
-            start = dict(base.values, **s)
+            start = {**base.values, **s}
             if name == "compressibility":
-                start["nu0"] = min(sim.nu0 - 0.04, s["nu0"])
+                start[NU0] = min(sim.nu0 - 0.04, s[NU0])
             try:
                 f = fit(sim, obs, sigma, start, names + list(e.names), effect=name,
                         max_nfev=max_nfev, effect_def=e)

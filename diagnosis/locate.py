@@ -17,18 +17,15 @@ together with a residual ``r`` (recorded minus model, one per row).  A *series* 
 
 The procedure, "with a statistic, not by eye":
 
-1. :func:`estimate_noise`: a noise level sigma per series from the residual's second
-   differences ``d_i = r_{i-1} - 2 r_i + r_{i+1}``, which for white noise have
-   ``var d = 6 sigma^2`` and in which a smooth (systematic) misfit barely appears
-   (``d_i ~ r''(t) dt^2``).  The effective degrees of freedom ``nu`` of each estimate
-   (:func:`noise_dof`) are kept so that the tests below account for sigma being estimated.
+1. :func:`diagnosis.noise.estimate_noise`: a noise level sigma per series from the
+   residual's second differences, with its effective degrees of freedom.
 2. :func:`segments`: the protocol's own axes (test, channel, branch, cycle, range) and a
    fine ``cell`` partition (curve, channel, branch, side/range) for the mismatch map.
 3. :func:`locate`: on each segment, with ``z = r / sigma``, an excess-variance test
    (``chi2 = sum z^2``) and a Wald-Wolfowitz runs test on the signs of ``z`` in recording
    order; Bonferroni over the segments.  :func:`summary` condenses the table for JSON.
-4. :func:`mismatch_map`: z against control per curve/channel and a heat map of
-   ``-log10 p`` over the cells.
+4. :func:`diagnosis.figures.mismatch_map`: z against control per curve/channel and a heat
+   map of ``-log10 p`` over the cells.
 
 Why these two tests: sigma comes from second differences, so a smooth misfit leaves it
 (almost) unchanged while it adds ``sum m_i^2 / sigma^2`` to ``chi2`` -- excess variance
@@ -42,7 +39,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -50,220 +46,21 @@ import numpy as np
 import pandas as pd
 from scipy import special
 
+from .noise import noise_dof
+from .series import as_float, check, neutral_of, series_ids
+
 log = logging.getLogger(__name__)
 
-__all__ = [
-    "AXES",
-    "REQUIRED_COLUMNS",
-    "estimate_noise",
-    "locate",
-    "mismatch_map",
-    "neutral_of",
-    "noise_dof",
-    "segments",
-    "summary",
-]
-
-REQUIRED_COLUMNS = ("specimen", "curve", "channel", "branch", "cycle", "control", "value")
-SERIES = ("specimen", "curve", "channel")
 AXES = ("specimen", "test", "channel", "branch", "cycle", "range", "cell")
 TABLE_COLUMNS = ("axis", "segment", "n", "mean_z", "rms_z", "chi2", "p_chi2", "runs_z",
                  "p_runs", "p_value", "systematic", "nu_sigma")
-
-MAD_TO_SD = 1.4826  # 1 / Phi^{-1}(3/4): MAD of a normal sample -> its standard deviation
-MIN_SERIES = 5  # shorter series borrow the pooled estimate of their channel
-MIN_DIFFS = 3  # fewest second differences for a robust scale
-REWEIGHT_C = 3.0  # hard-rejection cut (in robust SDs) of the reweighting step
-# Effective degrees of freedom per second difference of the reweighted scale estimate:
-# var(s^2 / sigma^2) = 2 / nu with nu = DOF_PER_DIFF * n_d.  The d_i are MA(2)-correlated
-# (lag-1 and lag-2 correlations -2/3 and 1/6), so even the plain mean of d^2 has only
-# n_d / (1 + 2 (4/9 + 1/36)) = 0.51 n_d; calibrated by simulation (N = 20..120 points,
-# runs of 10..60) at 0.47-0.48.  The MAD alone would give 0.23 n_d.
-DOF_PER_DIFF = 0.47
-FLOOR_REL = 1e-12  # sigma floor, relative to the channel's peak |value|
-FLOOR_ABS = 1e-300
-_TRUNC_K = 1.0 - 2.0 * REWEIGHT_C * math.exp(-0.5 * REWEIGHT_C**2) / math.sqrt(2.0 * math.pi) \
-    / math.erf(REWEIGHT_C / math.sqrt(2.0))  # k(c) = 1 - 2 c phi(c) / (2 Phi(c) - 1)
 MIN_SEGMENT = 5  # smaller segments are listed but not tested (p = NaN)
-SHEAR_PREFIXES = ("torsion", "simple_shear")
-
-
-def neutral_of(curve: str) -> float:
-    """Neutral control value: 0 for shear curves (``torsion*``, ``simple_shear*``), else 1."""
-    return 0.0 if str(curve).startswith(SHEAR_PREFIXES) else 1.0
-
-
-def _check(obs: pd.DataFrame, *arrays: tuple[str, np.ndarray | None]) -> None:
-    missing = [c for c in REQUIRED_COLUMNS if c not in obs.columns]
-    if missing:
-        raise ValueError(f"observation table lacks column(s) {', '.join(missing)}")
-    for name, a in arrays:
-        if a is not None and len(a) != len(obs):
-            raise ValueError(f"{name} has {len(a)} values, observation table has {len(obs)} rows")
-
-
-def _as_float(a, name: str, n: int) -> np.ndarray:
-    out = np.asarray(a, dtype=float).reshape(-1)
-    if out.size != n:
-        raise ValueError(f"{name} has {out.size} values, observation table has {n} rows")
-    return out
-
-
-def _series_ids(obs: pd.DataFrame, keys: Sequence[str] = SERIES) -> np.ndarray:
-    """Integer id per row of the ``keys`` group, numbered by first appearance."""
-    combined = np.zeros(len(obs), dtype=np.int64)
-    for k in keys:
-        codes, uniques = pd.factorize(obs[k], use_na_sentinel=False)
-        combined = combined * max(len(uniques), 1) + codes
-        combined = pd.factorize(combined)[0].astype(np.int64)  # keep the numbers small
-    return combined
-
-
-def _run_ids(obs: pd.DataFrame) -> np.ndarray:
-    """Id per row of its *run*: consecutive rows (recording order) of one series with equal
-    (branch, cycle); a turning point of the protocol starts a new run."""
-    n = len(obs)
-    sid = _series_ids(obs)
-    bc = _series_ids(obs, ("branch", "cycle"))
-    run = np.zeros(n, dtype=np.int64)
-    for _, pos in _groups(obs):
-        new = np.r_[True, bc[pos][1:] != bc[pos][:-1]]
-        run[pos] = np.cumsum(new) - 1
-    return _series_ids(pd.DataFrame({"s": sid, "r": run}), ("s", "r")) if n else run
-
-
-def _groups(obs: pd.DataFrame, keys: Sequence[str] = SERIES) -> list[tuple[tuple, np.ndarray]]:
-    """``[(key values, ascending row positions)]`` per group, in order of first appearance."""
-    ids = _series_ids(obs, keys)
-    order = np.argsort(ids, kind="stable")
-    bounds = np.flatnonzero(np.diff(ids[order])) + 1
-    cols = [obs[k].to_numpy() for k in keys]
-    return [(tuple(c[pos[0]] for c in cols), pos) for pos in np.split(order, bounds)
-            if pos.size]
-
-
-def _second_differences(r: np.ndarray, run_key: np.ndarray) -> np.ndarray:
-    """``d_i = r_{i-1} - 2 r_i + r_{i+1}`` within runs of equal ``run_key`` (consecutive rows
-    of one (branch, cycle)); runs are also cut at non-finite residuals, so the kinks of the
-    protocol's turning points never enter."""
-    n = r.size
-    if n < 3:
-        return np.empty(0)
-    ok = np.isfinite(r)
-    same = (run_key[1:] == run_key[:-1]) & ok[1:] & ok[:-1]  # pair (i, i+1) in one run
-    valid = same[:-1] & same[1:]  # triple (i, i+1, i+2) in one run
-    d = r[:-2] - 2.0 * r[1:-1] + r[2:]
-    return d[valid]
-
-
-def _robust_sd(d: np.ndarray) -> float:
-    """Noise SD from second differences, ``sigma = s_d / sqrt(6)``.
-
-    ``s0 = 1.4826 * median|d - median d|`` (MAD, robust to the few d that straddle a kink or
-    an outlier); then one reweighting step for efficiency (the MAD alone has 37 % Gaussian
-    efficiency): ``s_d^2 = sum_{|d - med| <= c s0} (d - med)^2 / (n_kept * k(c))`` with
-    ``c = 3`` and the truncated-normal consistency factor
-    ``k(c) = 1 - 2 c phi(c) / (2 Phi(c) - 1)``.  Returns NaN if it cannot be formed and 0
-    for identically flat differences (the caller floors it).
-    """
-    if d.size < MIN_DIFFS:
-        return math.nan
-    med = float(np.median(d))
-    dev = np.abs(d - med)
-    s0 = MAD_TO_SD * float(np.median(dev))
-    if s0 <= 0.0:  # more than half of the d tie: fall back to the plain SD of d
-        return float(np.sqrt(np.mean((d - med) ** 2)) / math.sqrt(6.0))
-    keep = dev <= REWEIGHT_C * s0
-    s = math.sqrt(float(np.sum(dev[keep] ** 2)) / (int(keep.sum()) * _TRUNC_K))
-    return s / math.sqrt(6.0)
-
-
-def _noise(obs: pd.DataFrame, residual) -> tuple[np.ndarray, np.ndarray]:
-    """(sigma, nu) per row; see :func:`estimate_noise` and :func:`noise_dof`."""
-    _check(obs)
-    r = _as_float(residual, "residual", len(obs))
-    n = len(obs)
-    sigma = np.full(n, np.nan)
-    nu = np.full(n, np.nan)
-    if n == 0:
-        return sigma, nu
-    value = obs["value"].to_numpy(dtype=float)
-    run_key = _series_ids(obs, ("branch", "cycle"))
-    groups = _groups(obs)
-    diffs: dict[tuple, np.ndarray] = {}
-    for key, pos in groups:
-        diffs[key] = _second_differences(r[pos], run_key[pos])
-    by_channel: dict[str, list[np.ndarray]] = {}
-    for key, d in diffs.items():
-        by_channel.setdefault(key[2], []).append(d)
-    pooled = {}
-    for ch, ds in by_channel.items():
-        d = np.concatenate(ds)
-        pooled[ch] = (_robust_sd(d), DOF_PER_DIFF * d.size)
-    channel = obs["channel"].to_numpy()
-    for key, pos in groups:
-        rr = r[pos]
-        npts = int(np.isfinite(rr).sum())
-        d = diffs[key]
-        s = _robust_sd(d) if npts >= MIN_SERIES else math.nan
-        dof = DOF_PER_DIFF * d.size
-        if not math.isfinite(s):
-            s, dof = pooled[key[2]]
-            how = "pooled channel estimate"
-            if not math.isfinite(s):
-                fin = rr[np.isfinite(rr)]
-                s = float(np.sqrt(np.mean(fin**2))) if fin.size else math.nan
-                dof = float(fin.size)
-                how = "RMS of the residual"
-            log.debug("series %s: %d points, noise from the %s", key, npts, how)
-        peak = np.nanmax(np.abs(value[channel == key[2]]), initial=0.0)
-        floor = max(FLOOR_REL * (peak if math.isfinite(peak) else 0.0), FLOOR_ABS)
-        if not math.isfinite(s) or s < floor:
-            s = floor
-        sigma[pos] = s
-        nu[pos] = max(dof, 1.0)
-    return sigma, nu
-
-
-def estimate_noise(obs: pd.DataFrame, residual) -> np.ndarray:
-    """Noise standard deviation per row, one value per (specimen, curve, channel) series.
-
-    Within each run of consecutive rows with equal (branch, cycle) the second differences
-    ``d_i = r_{i-1} - 2 r_i + r_{i+1}`` are formed (never across a turning point of the
-    protocol).  For white noise of SD sigma, ``var d = (1 + 4 + 1) sigma^2 = 6 sigma^2``;
-    a misfit that is smooth in recording order contributes only ``~ r''(t) dt^2`` (zero
-    for a constant or linear misfit), so the estimate measures the noise, not the misfit::
-
-        s0 = 1.4826 * MAD(d)                      (robust start)
-        s_d^2 = mean_{|d - med| <= 3 s0} (d - med)^2 / k(3)     (one reweighting step)
-        sigma = s_d / sqrt(6)
-
-    ``k(c) = 1 - 2 c phi(c) / (2 Phi(c) - 1)`` makes the trimmed variance consistent.  The
-    relative standard error of sigma is about ``1 / sqrt(2 nu)`` with ``nu = 0.47 n_d``
-    (:func:`noise_dof`), i.e. 13-14 % for a 60-point series.
-
-    Guards: a series with fewer than 5 finite residuals (or fewer than 3 differences) takes
-    the pooled estimate over all second differences of its channel, failing that the RMS of
-    its residual; sigma is floored at ``1e-12 * max |value|`` of the channel, so it is never
-    0.  Residuals that are NaN stay NaN in ``z`` but do not break the estimate.
-    """
-    return _noise(obs, residual)[0]
-
-
-def noise_dof(obs: pd.DataFrame, residual) -> np.ndarray:
-    """Effective degrees of freedom ``nu`` of :func:`estimate_noise`'s sigma per row.
-
-    ``nu = 2 / var(sigma_hat^2 / sigma^2)``; ``0.47 n_d`` for a series estimate from ``n_d``
-    second differences (simulation-calibrated; see ``DOF_PER_DIFF``), the pooled count for a
-    pooled estimate, the number of points for the RMS fallback.
-    """
-    return _noise(obs, residual)[1]
 
 
 # --------------------------------------------------------------------------- segments
 
 @dataclass(frozen=True)
-class _Cell:
+class Cell:
     curve: str
     channel: str
     branch: str
@@ -307,7 +104,7 @@ def _parts(obs: pd.DataFrame) -> np.ndarray:
     return np.where(np.isfinite(control), part, "unknown").astype(object)
 
 
-def _cells(obs: pd.DataFrame) -> list[_Cell]:
+def cells(obs: pd.DataFrame) -> list[Cell]:
     curve = obs["curve"].astype(str).to_numpy()
     channel = obs["channel"].astype(str).to_numpy()
     branch = obs["branch"].astype(str).to_numpy()
@@ -322,7 +119,7 @@ def _cells(obs: pd.DataFrame) -> list[_Cell]:
                 for p in order:
                     m = m_b & (part == p)
                     if m.any():
-                        out.append(_Cell(cv, ch, br, p, m))
+                        out.append(Cell(cv, ch, br, p, m))
     return out
 
 
@@ -346,7 +143,7 @@ def segments(obs: pd.DataFrame) -> list[tuple[str, str, np.ndarray]]:
     when there is a single curve) is dropped so that no test is counted twice; cells are
     always kept (they tile the map).  Masks are positional (``len(obs)``).
     """
-    _check(obs)
+    check(obs)
     n = len(obs)
     out: list[tuple[str, str, np.ndarray]] = []
     if n == 0:
@@ -402,7 +199,7 @@ def segments(obs: pd.DataFrame) -> list[tuple[str, str, np.ndarray]]:
         small = m_c & np.isfinite(dev) & (dev <= 0.5 * maxdev)
         add("range", f"{cv}/small", small)
         add("range", f"{cv}/large", m_c & np.isfinite(dev) & ~small)
-    for cell in _cells(obs):
+    for cell in cells(obs):
         if cell.mask.any():
             out.append(("cell", cell.label, cell.mask))
     return out
@@ -486,23 +283,23 @@ def locate(obs: pd.DataFrame, residual, sigma, alpha: float = 0.01, *,
     runs_z, p_runs, p_value, systematic, nu_sigma``; ``table.attrs`` holds ``alpha``,
     ``m`` and ``threshold``.
     """
-    _check(obs)
+    check(obs)
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
     n_rows = len(obs)
-    r = _as_float(residual, "residual", n_rows)
-    s = _as_float(np.broadcast_to(np.asarray(sigma, dtype=float), (n_rows,)), "sigma", n_rows)
+    r = as_float(residual, "residual", n_rows)
+    s = as_float(np.broadcast_to(np.asarray(sigma, dtype=float), (n_rows,)), "sigma", n_rows)
     if np.any(s[np.isfinite(s)] <= 0.0):
         raise ValueError("sigma must be positive")
     if sigma_dof is None:
         nu = noise_dof(obs, r)
     else:
-        nu = _as_float(np.broadcast_to(np.asarray(sigma_dof, dtype=float), (n_rows,)),
+        nu = as_float(np.broadcast_to(np.asarray(sigma_dof, dtype=float), (n_rows,)),
                        "sigma_dof", n_rows)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         z = r / s
     finite = np.isfinite(z)
-    sid = _series_ids(obs) if n_rows else np.empty(0, dtype=int)
+    sid = series_ids(obs) if n_rows else np.empty(0, dtype=int)
     n_series = int(sid.max()) + 1 if n_rows else 0
     # nu of each series (constant within a series; the mean guards odd user input);
     # infinite (known sigma) contributes nothing to 1 / nu_eff
@@ -579,122 +376,3 @@ def summary(table: pd.DataFrame) -> dict:
                        "rms_z": _f(r.rms_z), "p_value": _f(r.p_value)}
                       for r in sysm.itertuples(index=False)]
     return out
-
-
-# ------------------------------------------------------------------------------- map
-
-def mismatch_map(obs: pd.DataFrame, residual, sigma, table: pd.DataFrame, path) -> str:
-    """Figure of where the misfit is, written to ``path`` (PNG; parent directory must exist).
-
-    One panel per (curve, channel): ``z = residual / sigma`` against the control value,
-    loading and unloading in different colours (recording order joined by thin lines
-    within each (branch, cycle) run), the band ``|z| <= 2`` shaded grey, and the control
-    range of each systematic ``cell`` shaded red and named by its branch.  A last panel
-    is a heat map of ``-log10 p_value`` over the cells (rows curve/channel, columns
-    branch/part), systematic cells marked ``*`` and the Bonferroni level on the colour bar;
-    untested cells are grey.  Returns ``path``.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    _check(obs)
-    path = os.fspath(path)
-    d = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(d):
-        raise ValueError(f"{path}: output directory does not exist ({d})")
-    n_rows = len(obs)
-    r = _as_float(residual, "residual", n_rows)
-    s = _as_float(np.broadcast_to(np.asarray(sigma, dtype=float), (n_rows,)), "sigma", n_rows)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z = r / s
-    curve = obs["curve"].astype(str).to_numpy()
-    channel = obs["channel"].astype(str).to_numpy()
-    branch = obs["branch"].astype(str).to_numpy()
-    control = obs["control"].to_numpy(dtype=float)
-    run_id = _run_ids(obs)
-
-    cells = _cells(obs)
-    ctab = table[table["axis"] == "cell"].set_index("segment")
-    pairs = list(dict.fromkeys((c.curve, c.channel) for c in cells))
-    colors = {"loading": "tab:blue", "unloading": "tab:orange"}
-
-    n_panels = len(pairs) + 1
-    ncols = min(3, n_panels)
-    nrows = math.ceil(n_panels / ncols)
-    fig, axes = plt.subplots(nrows, ncols, squeeze=False, layout="constrained",
-                             figsize=(4.6 * ncols, 3.4 * nrows))
-    flat = list(axes.ravel())
-    for ax, (cv, ch) in zip(flat, pairs, strict=False):
-        m_cc = (curve == cv) & (channel == ch) & np.isfinite(z) & np.isfinite(control)
-        ax.axhspan(-2.0, 2.0, color="0.88", zorder=0, label=r"$|z| \leq 2$")
-        ax.axhline(0.0, color="0.5", lw=0.6, zorder=1)
-        for c in cells:
-            if c.curve != cv or c.channel != ch or c.label not in ctab.index:
-                continue
-            if not bool(ctab.loc[c.label, "systematic"]):
-                continue
-            x = control[c.mask & np.isfinite(control)]
-            if x.size:
-                lo, hi = float(x.min()), float(x.max())
-                if hi == lo:
-                    pad = 0.01 * max(abs(lo), 1e-3)
-                    lo, hi = lo - pad, hi + pad
-                ax.axvspan(lo, hi, color="tab:red", alpha=0.13, zorder=0)
-                ax.text(0.5 * (lo + hi), 1.0, f"{c.branch}\np={ctab.loc[c.label, 'p_value']:.1g}",
-                        transform=ax.get_xaxis_transform(), ha="center", va="top", fontsize=7,
-                        color="tab:red")
-        shown = set()
-        for rid in np.unique(run_id[m_cc]):
-            m = m_cc & (run_id == rid)
-            br = branch[m][0]
-            col = colors.get(br, "0.4")
-            ax.plot(control[m], z[m], "-", color=col, lw=0.5, alpha=0.6, zorder=2)
-            ax.plot(control[m], z[m], "o", ms=2.8, color=col, zorder=3,
-                    label=None if br in shown else br)
-            shown.add(br)
-        ax.axvline(neutral_of(cv), color="0.6", lw=0.6, ls=":")
-        ax.set_title(f"{cv} - {ch}", fontsize=9)
-        ax.set_xlabel("amount of shear [-]" if neutral_of(cv) == 0.0 else "stretch [-]")
-        ax.set_ylabel(r"$z = r / \sigma$")
-        ax.legend(fontsize=7, loc="lower left")
-
-    hm = flat[len(pairs)]
-    cols = list(dict.fromkeys((c.branch, c.part) for c in cells))
-    # drop columns with nothing tested (e.g. the few points at stretch exactly 1)
-    tested_cols = {(c.branch, c.part) for c in cells if c.label in ctab.index
-                   and math.isfinite(float(ctab.loc[c.label, "p_value"]))}
-    cols = [c for c in cols if c in tested_cols] or cols
-    mat = np.full((len(pairs), len(cols)), np.nan)
-    mark = np.zeros_like(mat, dtype=bool)
-    for c in cells:
-        if c.label in ctab.index and (c.branch, c.part) in cols:
-            i, j = pairs.index((c.curve, c.channel)), cols.index((c.branch, c.part))
-            p = float(ctab.loc[c.label, "p_value"])
-            if math.isfinite(p):
-                mat[i, j] = -math.log10(max(p, 1e-300))
-            mark[i, j] = bool(ctab.loc[c.label, "systematic"])
-    cmap = plt.get_cmap("magma_r").copy()
-    cmap.set_bad("0.85")
-    thr = table.attrs.get("threshold")
-    finite_vals = mat[np.isfinite(mat)]
-    vmax = max(float(finite_vals.max()) if finite_vals.size else 1.0,
-               -math.log10(thr) if thr and math.isfinite(thr) else 1.0, 1.0)
-    im = hm.imshow(np.ma.masked_invalid(mat), cmap=cmap, vmin=0.0, vmax=vmax, aspect="auto")
-    for i, j in zip(*np.nonzero(mark), strict=True):
-        hm.text(j, i, "*", ha="center", va="center", color="white", fontsize=12,
-                fontweight="bold")
-    hm.set_xticks(range(len(cols)), [f"{b}\n{p}" for b, p in cols], fontsize=6, rotation=90)
-    hm.set_yticks(range(len(pairs)), [f"{cv}/{ch}" for cv, ch in pairs], fontsize=6)
-    hm.set_title(r"$-\log_{10} p$ per cell (* systematic)", fontsize=9)
-    cb = fig.colorbar(im, ax=hm, shrink=0.9)
-    if thr and math.isfinite(thr):
-        cb.ax.axhline(-math.log10(thr), color="tab:cyan", lw=1.5)
-        cb.set_label(r"$-\log_{10} p$ (line: $\alpha / m$)", fontsize=7)
-    for ax in flat[len(pairs) + 1:]:
-        ax.set_visible(False)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    log.info("mismatch map written to %s", path)
-    return path

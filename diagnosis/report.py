@@ -5,47 +5,12 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import numpy as np
-
 from brain_fe.io import write_json_atomic, write_text_atomic
 
-from . import locate as loc
 from .effects import EFFECTS
+from .figures import before_after, mismatch_map
 
 log = logging.getLogger(__name__)
-
-
-def before_after(d, path: Path) -> None:
-    """Recording, base fit and refit for every curve/channel, loading and unloading."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    groups = list(d.obs.groupby(["curve", "channel"], sort=False))
-    fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 3.6), squeeze=False)
-    for ax, ((curve, ch), g) in zip(axes[0], groups, strict=True):
-        i = g.index.to_numpy()
-        for br, colour in (("loading", "tab:blue"), ("unloading", "tab:orange")):
-            m = (g["branch"] == br).to_numpy()
-            if not m.any():
-                continue
-            ax.plot(g["control"][m], g["value"][m], ".", ms=3, color=colour, alpha=0.6,
-                    label=f"recorded, {br}")
-        x = g["control"].to_numpy()
-        ax.plot(x, d.base.prediction[i], "-", color="0.4", lw=1, label="base fit")
-        if d.verdict != "none":
-            ax.plot(x, d.winner.prediction[i], "-", color="tab:red", lw=1,
-                    label=f"with {d.verdict}")
-        rb = np.sqrt(np.mean(d.base.z[i] ** 2))
-        ra = np.sqrt(np.mean(d.winner.z[i] ** 2))
-        ax.set_title(f"{curve} / {ch}\nRMS/noise {rb:.2f} -> {ra:.2f}", fontsize=9)
-        ax.set_xlabel("stretch" if "compression" in curve or "tension" in curve
-                      else "amount of shear")
-    axes[0][0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def write(d, out: str | Path, *, title: str = "diagnosis") -> dict:
@@ -54,7 +19,7 @@ def write(d, out: str | Path, *, title: str = "diagnosis") -> dict:
     out.mkdir(parents=True, exist_ok=True)
     res = d.to_json()
     r = d.base.prediction - d.obs["value"].to_numpy(float)
-    loc.mismatch_map(d.obs, r, d.sigma, d.located, out / "mismatch_map.png")
+    mismatch_map(d.obs, r, d.sigma, d.located, out / "mismatch_map.png")
     before_after(d, out / "before_after.png")
     write_json_atomic(out / "diagnosis.json", res, indent=1, default=float)
     lines = [f"# {title}", "",

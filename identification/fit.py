@@ -1,10 +1,11 @@
 """Two-stage inverse identification of (mu, alpha) for one specimen or region average.
 
-Stage 1 minimises the objective on the surrogate (scipy ``least_squares``, trust-region
-reflective, bounded by the surrogate's training range, started from the best point of a
-coarse grid). Stage 2 restarts from the stage-1 optimum with the FE model in the loop and
-its exact parameter sensitivities (``least_squares`` with the analytic Jacobian).
-Both work in z = (ln mu, alpha), which balances the two parameters' scales.
+Stage 1 minimises the objective on the surrogates (scipy ``least_squares``, trust-region
+reflective, bounded by the surrogates' training range, started from the best point of a
+coarse grid).  Stage 2 restarts from the stage-1 optimum with the FE model in the loop and
+its exact parameter sensitivities.  Both are :class:`~simulators.base.Simulator`\\ s of the
+same observation table, and both work in z = (ln mu, alpha), which balances the two
+parameters' scales; nu0 is held fixed (kappa moves with mu).
 
 Uncertainty: with the residual variance s^2 = ||r||^2 / (n - 2), cov = s^2 (J^T J)^-1 from
 the FE Jacobian at the optimum gives standard errors and the mu-alpha correlation; a
@@ -19,14 +20,23 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+import pandas as pd
 from scipy.optimize import least_squares
 
-from .objective import Curve, gavrus_errors, residuals
+from brain_fe.parameters import alpha as ALPHA
+from brain_fe.parameters import mu as MU
+from brain_fe.vocabulary import COMPRESSION_TENSION
+from simulators.base import LastCall, Simulator
+from simulators.coordinates import NU0
+
+from .objective import curve_norms, gavrus_errors, residuals
 
 log = logging.getLogger(__name__)
 
 ALPHA_LIMIT = 80.0
 MU_LIMITS = (1e-3, 1e3)  # kPa
+FITS = (COMPRESSION_TENSION, "all")
+WRT = (MU(0), ALPHA(0))
 
 
 class IdentifiabilityWarning(UserWarning):
@@ -67,41 +77,53 @@ class Identification:
         return self.stage2.alpha
 
 
-def _objective(curves, sims) -> tuple[float, dict]:
-    eps = gavrus_errors(curves, sims)
-    return float(np.sum(eps**2)), {c.key: float(e) for c, e in zip(curves, eps, strict=True)}
+def _values(z, nu0: float) -> dict:
+    return {MU(0): float(np.exp(z[0])), ALPHA(0): float(z[1]), NU0: nu0}
 
 
-def stage_surrogate(curves: list[Curve], sim, *, grid: int = 9) -> Stage:
-    """Stage 1 on the surrogate: grid start, then bounded trust-region least squares."""
-    sim.check_keys(curves)
-    lo, hi = sim.bounds([c.key for c in curves])
-    zlo, zhi = np.array([np.log(lo[0]), lo[1]]), np.array([np.log(hi[0]), hi[1]])
-    t0 = time.perf_counter()
-    hist: list = []
+def _least_squares(pred: LastCall, z0, zlo, zhi, *, history: list, **kw):
+    """least_squares in z = (ln mu, alpha) on the Gavrus residuals of ``pred.sim``."""
+    sim = pred.sim
+    obs = sim.obs
+    norms = curve_norms(obs)
 
     def fun(z):
-        mu, alpha = float(np.exp(z[0])), float(z[1])
-        sims = sim(curves, mu, alpha)
-        r = residuals(curves, sims)
-        hist.append((len(hist) + 1, mu, alpha, float(r @ r)))
+        y = pred(_values(z, sim.nu0), WRT).y
+        r = residuals(obs, y)
+        point = (float(np.exp(z[0])), float(z[1]))
+        if not history or tuple(history[-1][1:3]) != point:
+            history.append((len(history) + 1, *point, float(r @ r)))
         return r
 
+    def jac(z):
+        J = pred(_values(z, sim.nu0), WRT).jacobian / norms[:, None]
+        return J * np.array([np.exp(z[0]), 1.0])  # d/d ln mu
+
+    return least_squares(fun, z0, jac=jac, bounds=(zlo, zhi), method="trf",
+                         x_scale=[1.0, 10.0], **kw)
+
+
+def stage_surrogate(sim: Simulator, *, grid: int = 9) -> Stage:
+    """Stage 1 on the surrogates: grid start, then bounded trust-region least squares."""
+    lo, hi = sim.bounds()
+    zlo, zhi = np.array([np.log(lo[0]), lo[1]]), np.array([np.log(hi[0]), hi[1]])
+    t0 = time.perf_counter()
     best = None
     for lm in np.linspace(zlo[0], zhi[0], grid):
         for a in np.linspace(zlo[1], zhi[1], grid):
-            r = fun(np.array([lm, a]))
+            r = residuals(sim.obs, sim.predict(_values([lm, a], sim.nu0)).y)
             if best is None or r @ r < best[0]:
                 best = (r @ r, np.array([lm, a]))
-    n_grid = len(hist)
     # keep the start strictly inside the box (trust-region reflective needs it)
     z0 = np.clip(best[1], zlo + 1e-6 * (zhi - zlo), zhi - 1e-6 * (zhi - zlo))
-    res = least_squares(fun, z0, bounds=(zlo, zhi), method="trf", x_scale=[1.0, 10.0],
-                        ftol=1e-12, xtol=1e-10, gtol=1e-12, max_nfev=400)
+    hist: list = []
+    res = _least_squares(LastCall(sim), z0, zlo, zhi, history=hist, ftol=1e-12, xtol=1e-10,
+                         gtol=1e-12, max_nfev=400)
     mu, alpha = float(np.exp(res.x[0])), float(res.x[1])
-    obj, errs = _objective(curves, sim(curves, mu, alpha))
-    return Stage("surrogate", mu, alpha, obj, errs, history=hist[n_grid:],
-                 evaluations=len(hist), protocol_solves=0,
+    y = sim.predict(_values(res.x, sim.nu0)).y
+    errs = gavrus_errors(sim.obs, y)
+    return Stage("surrogate", mu, alpha, float(sum(e**2 for e in errs.values())), errs,
+                 history=hist, evaluations=grid * grid + len(hist), protocol_solves=0,
                  wall_time_s=time.perf_counter() - t0, message=res.message)
 
 
@@ -110,46 +132,29 @@ def _alpha_bounds(alpha0: float) -> tuple[float, float]:
     return (-ALPHA_LIMIT, -0.1) if alpha0 < 0 else (0.1, ALPHA_LIMIT)
 
 
-def stage_fe(curves: list[Curve], fe, mu0: float, alpha0: float, *,
+def stage_fe(sim: Simulator, mu0: float, alpha0: float, *,
              max_evaluations: int = 30) -> tuple[Stage, np.ndarray, np.ndarray]:
-    """Stage 2: FE in the loop with exact sensitivities. Returns the stage, the residual
+    """Stage 2: FE in the loop with exact sensitivities.  Returns the stage, the residual
     vector and the Jacobian d r / d(mu, alpha) at the optimum."""
     a_lo, a_hi = _alpha_bounds(alpha0)
     zlo = np.array([np.log(MU_LIMITS[0]), a_lo])
     zhi = np.array([np.log(MU_LIMITS[1]), a_hi])
     t0 = time.perf_counter()
-    solves0, evals0 = fe.protocol_solves, fe.evaluations
+    solves0 = sim.solves
     hist: list = []
-    norms = np.concatenate([np.full(len(c.stress), c.norm) for c in curves])
-
-    def both(z):
-        mu, alpha = float(np.exp(z[0])), float(z[1])
-        sims, jacs = fe.evaluate(curves, mu, alpha, sensitivities=True)
-        r = residuals(curves, sims)
-        J = np.vstack(jacs) / norms[:, None]  # d r / d(mu, alpha)
-        if not hist or hist[-1][1:3] != (mu, alpha):
-            hist.append((len(hist) + 1, mu, alpha, float(r @ r)))
-        return r, J, sims
-
-    def fun(z):
-        return both(z)[0]
-
-    def jac(z):
-        J = both(z)[1].copy()
-        J[:, 0] *= np.exp(z[0])  # d/d ln mu
-        return J
-
     z0 = np.clip([np.log(mu0), alpha0], zlo + 1e-9, zhi - 1e-9)
     # xtol 1e-5: a parameter change of 1e-5 (relative) is ~1 % of a typical standard error
     # with 1 % noise, so further FE solves would not change the answer
-    res = least_squares(fun, z0, jac=jac, bounds=(zlo, zhi), method="trf",
-                        x_scale=[1.0, 10.0], ftol=1e-6, xtol=1e-5, gtol=1e-8,
-                        max_nfev=max_evaluations)
+    memo = LastCall(sim)
+    res = _least_squares(memo, z0, zlo, zhi, history=hist, ftol=1e-6, xtol=1e-5, gtol=1e-8,
+                         max_nfev=max_evaluations)
     mu, alpha = float(np.exp(res.x[0])), float(res.x[1])
-    r, J, sims = both(res.x)
-    obj, errs = _objective(curves, sims)
-    st = Stage("fe", mu, alpha, obj, errs, history=hist,
-               evaluations=fe.evaluations - evals0, protocol_solves=fe.protocol_solves - solves0,
+    pred = memo(_values(res.x, sim.nu0), WRT)
+    r = residuals(sim.obs, pred.y)
+    J = pred.jacobian / curve_norms(sim.obs)[:, None]
+    errs = gavrus_errors(sim.obs, pred.y)
+    st = Stage("fe", mu, alpha, float(sum(e**2 for e in errs.values())), errs, history=hist,
+               evaluations=len(hist), protocol_solves=sim.solves - solves0,
                wall_time_s=time.perf_counter() - t0, message=res.message)
     return st, r, J
 
@@ -173,26 +178,29 @@ def uncertainty(r: np.ndarray, J: np.ndarray, *, corr_limit: float = 0.99,
     return float(se[0]), float(se[1]), corr, abs(corr) < corr_limit
 
 
-def identify(curves: list[Curve], surrogate_sim, fe, *, fit: str = "all") -> Identification:
-    """Both stages for one specimen / region; ``fit`` selects the tests used."""
-    used = select(curves, fit)
-    s1 = stage_surrogate(used, surrogate_sim)
-    s2, r, J = stage_fe(used, fe, s1.mu_kPa, s1.alpha)
+def identify(surrogate_sim: Simulator, fe_sim: Simulator, *, fit: str = "all"
+             ) -> Identification:
+    """Both stages for one specimen / region on the simulators' observation table (the
+    curves of ``fit``: compression/tension only, or all)."""
+    tests = list(dict.fromkeys(fe_sim.obs["curve"]))
+    s1 = stage_surrogate(surrogate_sim)
+    s2, r, J = stage_fe(fe_sim, s1.mu_kPa, s1.alpha)
     mu_se, alpha_se, corr, ok = uncertainty(r, J)
     if not ok:
         warnings.warn(f"fit {fit!r}: mu and alpha are not separately identifiable from "
-                      f"{', '.join(c.key for c in used)} (correlation {corr:.3f})",
+                      f"{', '.join(tests)} (correlation {corr:.3f})",
                       IdentifiabilityWarning, stacklevel=2)
-    return Identification(fit, [c.key for c in used], s1, s2, mu_se, alpha_se, corr, ok)
+    return Identification(fit, tests, s1, s2, mu_se, alpha_se, corr, ok)
 
 
-def select(curves: list[Curve], fit: str) -> list[Curve]:
+def select(obs: pd.DataFrame, fit: str) -> pd.DataFrame:
+    """The observation rows a fit uses."""
     if fit == "all":
-        used = list(curves)
-    elif fit == "compression_tension":
-        used = [c for c in curves if c.test == "compression_tension"]
+        used = obs
+    elif fit == COMPRESSION_TENSION:
+        used = obs[obs["test"] == COMPRESSION_TENSION]
     else:
-        raise ValueError(f"fit must be 'compression_tension' or 'all', got {fit!r}")
-    if not used:
+        raise ValueError(f"fit must be one of {', '.join(FITS)}, got {fit!r}")
+    if used.empty:
         raise ValueError(f"no recorded curves for fit {fit!r}")
-    return used
+    return used.reset_index(drop=True)

@@ -1,68 +1,46 @@
 r"""The identification objective (after Gavrus et al., as in the paper).
 
-Per test t with recorded stresses e_i and simulated stresses s_i at the recorded control
-values:
+Per test (curve) t with recorded values e_i and simulated values s_i at the recorded
+control values:
 
 .. math::  \varepsilon_t = \sqrt{\sum_i (s_i - e_i)^2 / \sum_i e_i^2}
 
-The residual vector concatenates (s_i - e_i) / sqrt(sum_i e_i^2) over the tests used, so
+The residual vector concatenates (s_i - e_i) / sqrt(sum_i e_i^2) over the curves used, so
 that ``||r||^2 = sum_t eps_t^2``: the quantity minimised by both stages (a least-squares
-form, which the trust-region FE stage needs). Reports also give ``sum_t eps_t``.
-Stresses: nominal stress [kPa] for compression/tension, torque-derived shear stress
-2 T / (pi R^3) [kPa] for torsion.
+form, which the trust-region FE stage needs).  Each curve is fitted on one channel: the
+nominal stress (compression/tension) or the torque (torsion; eps_t is scale-invariant, so
+it equals the error of the torque-derived shear stress 2 T / (pi R^3) of the paper).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import pandas as pd
 
-STRESS = {"compression_tension": "nominal_stress_kPa", "torsion": "shear_stress_kPa"}
-CONTROL = {"compression_tension": "stretch", "torsion": "shear"}
+from brain_fe.vocabulary import COMPRESSION_TENSION, TORSION
+from recordings.observations import observations
+
+# The channel each test is identified on
+FIT_CHANNELS = {COMPRESSION_TENSION: ("stress",), TORSION: ("torque",)}
 
 
-@dataclass(frozen=True)
-class Curve:
-    """One recorded test of one specimen (or region average) in the objective."""
-
-    key: str  # compression_tension | torsion_0.15 | torsion_0.30
-    test: str  # compression_tension | torsion
-    amplitude: float
-    control: np.ndarray  # stretch or amount of shear at each recorded point
-    stress: np.ndarray  # recorded stress [kPa]
-    branch: np.ndarray  # loading | unloading
-
-    @property
-    def norm(self) -> float:
-        return float(np.sqrt(np.sum(self.stress**2)))
+def identification_obs(rec: pd.DataFrame) -> pd.DataFrame:
+    """Observation table of one specimen's recordings with the fitted channel of each test."""
+    return observations(rec, FIT_CHANNELS)
 
 
-def curves_from_recordings(rec: pd.DataFrame, radius_mm: float) -> list[Curve]:
-    """Curves of one specimen from its validated recordings (identification.recordings)."""
-    from brain_fe.model import shear_stress_kPa
-
-    from .recordings import key_for_test
-
-    out = []
-    for (test, amp), g in rec.groupby(["test", "amplitude"], sort=True):
-        key = key_for_test(test, amp)
-        if test == "compression_tension":
-            stress = g["nominal_stress_kPa"].to_numpy(float)
-        else:
-            stress = shear_stress_kPa(g["torque_mNmm"].to_numpy(float), radius_mm)
-        out.append(Curve(key, test, float(amp), g[CONTROL[test]].to_numpy(float), stress,
-                         g["branch"].to_numpy()))
-    return out
+def curve_norms(obs: pd.DataFrame) -> np.ndarray:
+    """sqrt(sum e_i^2) of each row's curve, per row."""
+    return obs.groupby("curve")["value"].transform(
+        lambda v: np.sqrt(np.sum(v.to_numpy(float) ** 2))).to_numpy(float)
 
 
-def gavrus_errors(curves: list[Curve], simulated: list[np.ndarray]) -> np.ndarray:
-    """eps_t for every curve."""
-    return np.array([np.sqrt(np.sum((s - c.stress) ** 2)) / c.norm
-                     for c, s in zip(curves, simulated, strict=True)])
+def residuals(obs: pd.DataFrame, y: np.ndarray) -> np.ndarray:
+    return (y - obs["value"].to_numpy(float)) / curve_norms(obs)
 
 
-def residuals(curves: list[Curve], simulated: list[np.ndarray]) -> np.ndarray:
-    return np.concatenate([(s - c.stress) / c.norm
-                           for c, s in zip(curves, simulated, strict=True)])
+def gavrus_errors(obs: pd.DataFrame, y: np.ndarray) -> dict[str, float]:
+    """eps_t for every curve, in order of appearance."""
+    r = residuals(obs, y)
+    return {str(c): float(np.sqrt(np.sum(r[g.index.to_numpy()] ** 2)))
+            for c, g in obs.groupby("curve", sort=False)}

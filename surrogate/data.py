@@ -11,11 +11,14 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-TEST_KEYS = ("compression_tension", "torsion_0.15", "torsion_0.30")
-CONTROL = {"compression_tension": "stretch", "torsion_0.15": "shear", "torsion_0.30": "shear"}
-TARGET = {"compression_tension": "nominal_stress_kPa", "torsion_0.15": "shear_stress_kPa",
-          "torsion_0.30": "shear_stress_kPa"}
-SECOND_TARGET = {"torsion_0.15": "axial_force_mN", "torsion_0.30": "axial_force_mN"}
+from brain_fe import vocabulary as v
+
+# One surrogate per protocol of the paper: compression/tension 0.15, torsion 0.15 and 0.30
+TEST_KEYS = (v.test_key(v.COMPRESSION_TENSION, 0.15), v.test_key(v.TORSION, 0.15),
+             v.test_key(v.TORSION, 0.30))
+CONTROL = {k: v.CONTROL[v.test_of_key(k)] for k in TEST_KEYS}
+TARGET = {k: v.STRESS_COLUMN[v.test_of_key(k)] for k in TEST_KEYS}
+SECOND_TARGET = {k: v.AXIAL_FORCE for k in TEST_KEYS if v.test_of_key(k) == v.TORSION}
 
 
 @dataclass

@@ -30,6 +30,9 @@ LEARNING_RATES = (1e-4, 1e-3, 1e-2)
 
 
 _ACT = {"relu": lambda h: np.maximum(h, 0.0), "tanh": np.tanh, "logistic": expit}
+# derivative of each activation from its value a = act(z)
+_DACT = {"relu": lambda a: (a > 0.0).astype(float), "tanh": lambda a: 1.0 - a * a,
+         "logistic": lambda a: a * (1.0 - a)}
 
 
 def _log_first_column(X):
@@ -115,6 +118,34 @@ class StressSurrogate(RegressorMixin, BaseEstimator):
             raise ValueError("X must have 3 columns (mu, alpha, control)")
         out = self._forward(X)
         return out * X[:, 0] if self.scale_by_mu else out
+
+    def predict_with_gradient(self, X) -> tuple[np.ndarray, np.ndarray]:
+        """Stress [kPa] and its exact derivatives with respect to (mu, alpha), shape (n, 2):
+        the network differentiated layer by layer (forward mode) through the input scaling
+        (log mu) and the mu scaling of the target."""
+        check_is_fitted(self, "model_")
+        X = np.asarray(X, dtype=float)
+        reg = self.model_.regressor_
+        sc, mlp = reg.named_steps["scale"], reg.named_steps["mlp"]
+        h = (_log_first_column(X) - sc.mean_) / sc.scale_
+        # dh/d(mu, alpha): d log(mu)/d mu = 1 / mu, then the scaler
+        dh = np.zeros((len(X), X.shape[1], 2))
+        dh[:, 0, 0] = 1.0 / (X[:, 0] * sc.scale_[0])
+        dh[:, 1, 1] = 1.0 / sc.scale_[1]
+        last = len(mlp.coefs_) - 1
+        for i, (W, b) in enumerate(zip(mlp.coefs_, mlp.intercepts_, strict=True)):
+            h = h @ W + b
+            dh = np.einsum("nik,io->nok", dh, W)
+            if i < last:
+                h = _ACT[mlp.activation](h)
+                dh = dh * _DACT[mlp.activation](h)[:, :, None]
+        t = self.model_.transformer_
+        f = h[:, 0] * t.scale_[0] + t.mean_[0]
+        df = dh[:, 0, :] * t.scale_[0]
+        if not self.scale_by_mu:
+            return f, df
+        mu = X[:, 0]
+        return f * mu, np.column_stack([f + mu * df[:, 0], mu * df[:, 1]])
 
     def predict_pipeline(self, X):
         """The same prediction through the scikit-learn pipeline (reference path)."""

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 import joblib
 import numpy as np
 
+from brain_fe.io import write_atomic
+
 log = logging.getLogger(__name__)
 
 SCHEMA = "brainmech-surrogate/1"
@@ -115,9 +117,7 @@ class SurrogateBundle:
 
 
 def save_bundle(bundle: SurrogateBundle, path: str) -> None:
-    tmp = f"{path}.tmp"
-    joblib.dump(bundle, tmp)
-    os.replace(tmp, path)
+    write_atomic(path, lambda fh: joblib.dump(bundle, fh))
 
 
 def load_bundle(path: str) -> SurrogateBundle:
@@ -130,6 +130,16 @@ def load_bundle(path: str) -> SurrogateBundle:
     if not isinstance(b, SurrogateBundle) or getattr(b, "schema", None) != SCHEMA:
         raise ValueError(f"{path}: not a brainmech surrogate (schema {SCHEMA})")
     return b
+
+
+def available_surrogates(model_dir: str) -> list[str]:
+    """The test keys with a ``<key>.joblib`` in ``model_dir``."""
+    from .data import TEST_KEYS
+
+    keys = [k for k in TEST_KEYS if os.path.exists(os.path.join(model_dir, f"{k}.joblib"))]
+    if not keys:
+        raise FileNotFoundError(f"no surrogates (<test>.joblib) in {model_dir}")
+    return keys
 
 
 def load_surrogates(model_dir: str, keys=None) -> dict[str, SurrogateBundle]:

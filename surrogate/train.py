@@ -19,7 +19,10 @@ import numpy as np
 import pandas as pd
 from sklearn.metrics import r2_score
 
-from brain_fe.io import write_json_atomic
+from brain_fe.io import staged_directory, write_json_atomic
+from brain_fe.parallel import Progress
+from brain_fe.vocabulary import COMPRESSION_TENSION as CT
+from brain_fe.vocabulary import TORSION, test_of_key
 
 from .data import (
     CONTROL,
@@ -48,19 +51,15 @@ class Profile:
     early_stopping: bool
 
     def fixed(self, key: str, final: bool) -> dict:
-        epochs = (self.final_epochs if final else self.search_epochs)[
-            "compression_tension" if key == "compression_tension" else "torsion"]
+        epochs = (self.final_epochs if final else self.search_epochs)[test_of_key(key)]
         return {"max_iter": epochs, "early_stopping": self.early_stopping}
 
 
 PROFILES = {
-    "paper": Profile("paper", {"compression_tension": 6000, "torsion": 1000},
-                     {"compression_tension": 6000, "torsion": 1000}, False),
-    "default": Profile("default", {"compression_tension": 60, "torsion": 60},
-                       {"compression_tension": 1000, "torsion": 1000}, True),
+    "paper": Profile("paper", {CT: 6000, TORSION: 1000}, {CT: 6000, TORSION: 1000}, False),
+    "default": Profile("default", {CT: 60, TORSION: 60}, {CT: 1000, TORSION: 1000}, True),
     # for tests and the quick reproduce profile
-    "tiny": Profile("tiny", {"compression_tension": 40, "torsion": 40},
-                    {"compression_tension": 200, "torsion": 200}, True),
+    "tiny": Profile("tiny", {CT: 40, TORSION: 40}, {CT: 200, TORSION: 200}, True),
 }
 
 
@@ -113,14 +112,16 @@ def train_all(samples: pd.DataFrame, manifest: dict, out_dir: str, *, profile: s
     if profile not in PROFILES:
         raise ValueError(f"unknown profile {profile!r}; expected one of {', '.join(PROFILES)}")
     prof = PROFILES[profile]
-    os.makedirs(out_dir, exist_ok=True)
-    metrics: dict = {"profile": profile, "trials": trials, "executions": executions,
-                     "seed": seed, "versions": library_versions()}
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    with staged_directory(out_dir) as stage, \
+            Progress(trials * len(tests), "hyper-parameter trials", "trial",
+                     enabled=progress) as bar:
+        return _train(samples, manifest, str(stage), prof, trials, executions, seed, tests,
+                      bar)
 
-        bar = tqdm(total=trials * len(tests), desc="hyper-parameter trials", disable=None)
+
+def _train(samples, manifest, out_dir, prof, trials, executions, seed, tests, bar) -> dict:
+    metrics: dict = {"profile": prof.name, "trials": trials, "executions": executions,
+                     "seed": seed, "versions": library_versions()}
     for key in tests:
         table = table_for_test(samples, key)
         if table.empty:
@@ -131,9 +132,7 @@ def train_all(samples: pd.DataFrame, manifest: dict, out_dir: str, *, profile: s
         t0 = time.perf_counter()
 
         def on_trial(i, params, score, key=key):
-            if bar is not None:
-                bar.set_postfix_str(f"{key} trial {i}: MAE {score:.3g} kPa")
-                bar.update(1)
+            bar.update(1, f"{key} trial {i}: MAE {score:.3g} kPa")
 
         search = gp_search(Xtr, ytr, Xva, yva, trials=trials, executions=executions,
                            seed=seed, fixed=prof.fixed(key, final=False), on_trial=on_trial)
@@ -164,7 +163,5 @@ def train_all(samples: pd.DataFrame, manifest: dict, out_dir: str, *, profile: s
         }
         log.info("%s: R2 = %.4f +- %.4f over %d test curves", key, metrics[key]["r2_mean"],
                  metrics[key]["r2_std"], len(r2))
-    if bar is not None:
-        bar.close()
     write_json_atomic(os.path.join(out_dir, "metrics.json"), metrics, indent=2)
     return metrics

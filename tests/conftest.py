@@ -40,7 +40,7 @@ def tiny_store(tmp_path_factory):
 @pytest.fixture(scope="session")
 def tiny_models(tiny_store, tmp_path_factory):
     """Surrogates of the tiny store (tiny profile, 2 trials): (model dir, metrics)."""
-    from brain_fe.sampling import load_samples, read_manifest
+    from brain_fe.store import load_samples, read_manifest
     from surrogate.train import train_all
 
     out = tmp_path_factory.mktemp("models")

@@ -41,3 +41,25 @@ def rivlin_torque(gamma_R, mu=1.0, alpha=-20.0, radius=4.0):
 
     val, _ = quad(lambda r: dW(gamma_R * r / radius) * r**2, 0, radius, epsabs=1e-13)
     return 2 * np.pi * val
+
+
+def fibre_energy(l1, l2, l3, k1, k2):
+    """Tension-only fibre family along principal direction 1: k1/(2 k2)
+    (exp(k2 <I4bar - 1>^2) - 1), I4bar = (J^(-1/3) l1)^2 (complex-step safe)."""
+    x = (l1 * l2 * l3) ** (-2.0 / 3.0) * l1**2 - 1
+    if x.real <= 0:
+        return 0.0 * x
+    return k1 / (2 * k2) * (np.exp(k2 * x * x) - 1)
+
+
+def homogeneous_uniaxial_fibres(lam, k1, k2, mu=1.0, alpha=-20.0, kappa=100.0):
+    """Slip-end uniaxial nominal stress [kPa] along an axial fibre family, as
+    :func:`homogeneous_uniaxial` with the fibre energy added."""
+
+    def dW(i, lams, h=1e-30):
+        z = [complex(x) for x in lams]
+        z[i] += 1j * h
+        return (ogden_energy(*z, mu, alpha, kappa) + fibre_energy(*z, k1, k2)).imag / h
+
+    s = brentq(lambda s: dW(1, (lam, s, s)), 0.5, 2.0, xtol=1e-15)
+    return dW(0, (lam, s, s))

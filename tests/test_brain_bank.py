@@ -8,7 +8,7 @@ import pytest
 
 @pytest.fixture(scope="module")
 def bank(tmp_path_factory):
-    from analysis.brain_bank import BankSpec, make_brain_bank
+    from recordings.brain_bank import BankSpec, make_brain_bank
 
     out = tmp_path_factory.mktemp("bank")
     spec = BankSpec(seed=5, n_brains=2, elisa_brains=1, regions=("Am", "Hi"), refinement=1,
@@ -17,7 +17,7 @@ def bank(tmp_path_factory):
 
 
 def test_tables_pass_the_recordings_validator(bank):
-    from identification.recordings import read_recordings, read_specimens
+    from recordings.tables import read_recordings, read_specimens
 
     out, summary = bank
     spec = read_specimens(str(out / "specimens.csv"))
@@ -34,7 +34,7 @@ def test_tables_pass_the_recordings_validator(bank):
 def test_composition_and_overlap(bank):
     import pandas as pd
 
-    from analysis.brain_bank import COMPONENTS
+    from recordings.brain_bank import COMPONENTS
 
     out, summary = bank
     comp = pd.read_csv(out / "composition.csv")
@@ -73,7 +73,8 @@ def test_truth_is_kept_apart_and_consistent(bank):
     import pandas as pd
 
     from brain_fe import geometry
-    from brain_fe.model import ForwardModel, MaterialParameters
+    from brain_fe.materials import MaterialParameters
+    from brain_fe.model import ForwardModel
     from brain_fe.protocols import Protocol
 
     out, _ = bank

@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 from references import homogeneous_uniaxial
 
-from brain_fe.cli import main
+from brainmech.main import main
 
 
 def test_version_and_help(capsys):

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from diagnosis import budday
 from diagnosis.benchmark import rescore, run_benchmark
-from diagnosis.observations import observations
-from diagnosis.simulators import FESimulator
+from recordings import budday
+from recordings.observations import observations
+from simulators.fe import FESimulator
 
 
 def test_blind_three_cases(tmp_path):
@@ -51,7 +51,7 @@ def test_blind_three_cases(tmp_path):
 
 def test_fe_simulator_jacobian(tmp_path):
     """The chain-ruled sensitivities (nu0, log10 tau) against central differences."""
-    from brain_fe.api import make_geometry
+    from brain_fe.geometry import make as make_geometry
     from diagnosis.benchmark import _recordings, full_protocols
 
     vals = {"mu_0": 1.0, "alpha_0": -15.0, "nu0": 0.47, "beta_0": 0.4, "log10_tau_0": 0.8}
@@ -78,7 +78,7 @@ def test_diagnose_refuses_malformed_recordings(tmp_path):
                    "S1,compression_tension,0.15,1,loading,0,1.0,,0.0,,\n"
                    "S1,compression_tension,0.15,1,loading,1,0.99,,abc,,\n")
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "brain_fe.cli", "diagnose", "--recordings",
+    r = subprocess.run([sys.executable, "-m", "brainmech", "diagnose", "--recordings",
                         str(rec), "--specimens", str(spec), "--out", str(out)],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 1
@@ -92,7 +92,7 @@ def test_diagnose_refuses_malformed_recordings(tmp_path):
 def test_budday_regions(tmp_path):
     """Homogeneous base model on the four regions: one-term parameters in the range Budday
     et al. report (mu ~ 0.3-2 kPa, alpha strongly negative) and a verdict for each."""
-    from diagnosis.api import diagnose_budday
+    from diagnosis.budday import diagnose_budday
 
     s = diagnose_budday(None, tmp_path)
     assert sorted(s) == ["BG", "CC", "CR", "CX"]
@@ -113,7 +113,7 @@ def test_glued_cube_nests_homogeneous_and_differentiates():
     tolerance); glue stiffens compression; its sensitivities match central differences."""
     import pandas as pd
 
-    from diagnosis.glued_cube import GluedCubeSimulator
+    from simulators.glued_cube import GluedCubeSimulator
 
     lam = np.r_[np.linspace(0.99, 0.9, 6), np.linspace(1.01, 1.1, 6)]
     gam = np.linspace(0.02, 0.2, 6)

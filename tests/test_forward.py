@@ -9,7 +9,7 @@ from references import homogeneous_uniaxial, rivlin_torque
 
 
 def _params(**kw):
-    from brain_fe.model import MaterialParameters
+    from brain_fe.materials import MaterialParameters
 
     base = {"mu": (1.0,), "alpha": (-20.0,), "kappa": 100.0, "nu0": None}
     base.update(kw)

@@ -15,7 +15,8 @@ from references import homogeneous_uniaxial
 @pytest.mark.mpi
 def test_gmsh_cylinder_slip_compression_matches_closed_form():
     from brain_fe import geometry
-    from brain_fe.model import ForwardModel, MaterialParameters
+    from brain_fe.materials import MaterialParameters
+    from brain_fe.model import ForwardModel
     from brain_fe.protocols import Protocol
 
     g = geometry.cylinder3d(refinement=1, comm=MPI.COMM_WORLD)

@@ -11,8 +11,8 @@ import pandas as pd
 import pytest
 from scipy.optimize import brentq, least_squares
 
-from diagnosis import budday
-from diagnosis.homogeneous import (
+from recordings import budday
+from simulators.homogeneous import (
     HomogeneousSimulator,
     bulk_modulus,
     simple_shear_stress,

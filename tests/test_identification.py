@@ -26,7 +26,7 @@ def _specimens(n):
 
 @pytest.fixture(scope="module")
 def synthetic(fe_k1):
-    from identification.synthetic import make_recordings
+    from recordings.synthetic import make_recordings
 
     spec = _specimens(len(TRUTH))
     truth = pd.DataFrame({"specimen": spec.specimen, "mu_kPa": [t[0] for t in TRUTH],
@@ -40,7 +40,7 @@ def synthetic(fe_k1):
 def test_sensitivities_match_finite_differences(fe_k1, test):
     """d(stress, axial force)/d(mu, alpha, kappa) by direct differentiation vs central
     differences (h = 1e-6 relative) to 1e-4 relative."""
-    from brain_fe.model import MaterialParameters
+    from brain_fe.materials import MaterialParameters
     from brain_fe.protocols import Protocol
 
     prot = (Protocol(test, (1.0, 0.85, 1.15), max_increment=0.075) if test != "torsion"
@@ -69,16 +69,17 @@ def test_sensitivities_match_finite_differences(fe_k1, test):
 def test_spline_of_loading_branches_matches_direct_solve(fe_k1):
     """The FE simulator's spline through the loading branches equals a direct solve at
     off-grid stretches to 1e-5 of the peak stress."""
-    from brain_fe.model import MaterialParameters
+    from brain_fe.materials import MaterialParameters
     from brain_fe.protocols import Protocol
-    from identification.objective import Curve
-    from identification.simulators import FESimulator
+    from simulators.fe import FESimulator
 
     at = np.array([0.8733, 0.9517, 1.0021, 1.1234])
-    c = Curve("compression_tension", "compression_tension", 0.15, at, np.ones(4),
-              np.array(["loading"] * 4))
-    sim = FESimulator(4.0, 5.0, 0.49, forward_model=fe_k1)(
-        [c], 0.9, -15.0)[0]
+    obs = pd.DataFrame({"specimen": "S", "curve": "compression_tension",
+                        "test": "compression_tension", "amplitude": 0.15, "channel": "stress",
+                        "branch": "loading", "cycle": 1, "control": at, "time_s": np.nan,
+                        "value": 1.0})
+    sim = FESimulator(obs, 4.0, 5.0, nu0=0.49, path="branches",
+                      geometry=fe_k1.geometry).predict({"mu_0": 0.9, "alpha_0": -15.0}).y
     p = MaterialParameters(mu=(0.9,), alpha=(-15.0,), nu0=0.49)
     direct = [fe_k1.run(Protocol("compression_tension", (1.0, x), max_increment=0.015), p)
               .nominal_stress_kPa.iloc[-1] for x in at]
@@ -86,24 +87,37 @@ def test_spline_of_loading_branches_matches_direct_solve(fe_k1):
     np.testing.assert_allclose(sim, direct, atol=1e-5 * peak)
 
 
+def _simulators(rec, sid, tiny_models, fe_k1, fit="all"):
+    """Stage-1 (surrogates) and stage-2 (FE, branch shortcut) simulators of one specimen."""
+    from identification.fit import select
+    from identification.objective import identification_obs
+    from simulators.fe import FESimulator
+    from simulators.surrogate import SurrogateSimulator
+    from surrogate.persist import load_surrogates
+
+    obs = select(identification_obs(rec[rec.specimen == sid]), fit)
+    bundles = load_surrogates(str(tiny_models[0]))
+    sur = SurrogateSimulator(obs, bundles, radius_mm=4.0, height_mm=5.0, nu0=0.49)
+    fe = FESimulator(obs, 4.0, 5.0, nu0=0.49, path="branches", geometry=fe_k1.geometry,
+                     models=_MODELS)
+    return sur, fe
+
+
+_MODELS: dict = {}  # compiled models shared by the simulators of this module
+
+
 def test_recovers_known_parameters_with_one_percent_noise(synthetic, tiny_models, fe_k1):
     """All tests, 1 % noise: mu within 2 %, alpha within 3 %; the FE stage lowers the FE
     objective from the surrogate optimum, in <= 15 FE protocol solves; estimates within
     4 standard errors of the truth."""
     from identification.fit import identify
-    from identification.objective import curves_from_recordings
-    from identification.simulators import FESimulator, SurrogateSimulator
-    from surrogate.persist import load_surrogates
 
     spec, truth, rec = synthetic
-    bundles = load_surrogates(str(tiny_models[0]))
-    sur = SurrogateSimulator(bundles, radius_mm=4.0, height_mm=5.0, nu0=0.49)
-    fe = FESimulator(4.0, 5.0, 0.49, forward_model=fe_k1)
     for (mu, alpha), sid in zip(TRUTH, spec.specimen, strict=True):
-        curves = curves_from_recordings(rec[rec.specimen == sid], 4.0)
+        sur, fe = _simulators(rec, sid, tiny_models, fe_k1)
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # all tests: identifiable, no warning
-            res = identify(curves, sur, fe, fit="all")
+            res = identify(sur, fe, fit="all")
         assert res.mu_kPa == pytest.approx(mu, rel=0.02)
         assert res.alpha == pytest.approx(alpha, rel=0.03)
         assert res.stage2.objective < res.stage2.history[0][3]
@@ -116,24 +130,18 @@ def test_compression_only_warns_when_not_identifiable(synthetic, tiny_models, fe
     """With alpha = -30 the compression/tension curve alone cannot separate mu from alpha
     (|correlation| > 0.99): the fit says so."""
     from identification.fit import IdentifiabilityWarning, identify
-    from identification.objective import curves_from_recordings
-    from identification.simulators import FESimulator, SurrogateSimulator
-    from surrogate.persist import load_surrogates
 
     spec, truth, rec = synthetic
-    sur = SurrogateSimulator(load_surrogates(str(tiny_models[0])), radius_mm=4.0,
-                             height_mm=5.0, nu0=0.49)
-    fe = FESimulator(4.0, 5.0, 0.49, forward_model=fe_k1)
-    curves = curves_from_recordings(rec[rec.specimen == "S2"], 4.0)
+    sur, fe = _simulators(rec, "S2", tiny_models, fe_k1, fit="compression_tension")
     with pytest.warns(IdentifiabilityWarning, match="not separately identifiable"):
-        res = identify(curves, sur, fe, fit="compression_tension")
+        res = identify(sur, fe, fit="compression_tension")
     assert abs(res.correlation) > 0.99
     assert res.tests == ["compression_tension"]
 
 
 def test_identify_cli_end_to_end(synthetic, tiny_models, tmp_path):
-    from brain_fe.cli import main
-    from identification.recordings import write_table_atomic
+    from brainmech.main import main
+    from recordings.tables import write_table as write_table_atomic
 
     spec, truth, rec = synthetic
     write_table_atomic(spec.iloc[:1], str(tmp_path / "specimens.csv"))
@@ -156,8 +164,8 @@ def test_identify_cli_end_to_end(synthetic, tiny_models, tmp_path):
 
 
 def test_identify_cli_bad_recordings_one_line(synthetic, tiny_models, tmp_path, capsys):
-    from brain_fe.cli import main
-    from identification.recordings import write_table_atomic
+    from brainmech.main import main
+    from recordings.tables import write_table as write_table_atomic
 
     spec, truth, rec = synthetic
     write_table_atomic(spec, str(tmp_path / "specimens.csv"))
@@ -179,7 +187,7 @@ def test_identify_region_averaged_curves(synthetic, tiny_models, tmp_path):
     """Region-averaged input (specimen ids are region names): parameters.csv is keyed by
     region, and the values match the per-specimen fit of the same curves (1e-9)."""
     from identification.batch import identify_all
-    from identification.recordings import write_table_atomic
+    from recordings.tables import write_table as write_table_atomic
 
     spec, truth, rec = synthetic
     one = rec[rec.specimen == "S1"].assign(specimen="Hippocampus")

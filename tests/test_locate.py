@@ -14,7 +14,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from diagnosis import figures as F
 from diagnosis import locate as L
+from diagnosis import noise as N
 
 SIGMA = 0.3
 CT = "compression_tension"
@@ -69,7 +71,7 @@ def flagged(table: pd.DataFrame, axis: str, segment: str) -> bool:
 
 
 def run(obs: pd.DataFrame, r: np.ndarray) -> pd.DataFrame:
-    return L.locate(obs, r, L.estimate_noise(obs, r))
+    return L.locate(obs, r, N.estimate_noise(obs, r))
 
 
 # ------------------------------------------------------------------------ noise estimate
@@ -91,7 +93,7 @@ def test_noise_white_and_with_smooth_misfit():
     obs = three_curves()
     assert obs.groupby("curve").size().tolist() == [60, 60, 60]
     e = SIGMA * np.random.default_rng(11).standard_normal(len(obs))
-    s = series_sigma(obs, L.estimate_noise(obs, e))
+    s = series_sigma(obs, N.estimate_noise(obs, e))
     # pooled over the 3 series: within 15 % (expected relative SE ~ 8 %); each within 40 %
     # (single-series SE ~ 14 %, see noise_dof)
     assert abs(np.sqrt(np.mean(s**2)) / SIGMA - 1) < 0.15
@@ -101,7 +103,7 @@ def test_noise_white_and_with_smooth_misfit():
     m = quadratic_misfit(obs, 3 * SIGMA)
     assert np.allclose(np.sqrt(pd.Series(m).groupby(obs["curve"]).apply(
         lambda x: np.mean(x**2))), 3 * SIGMA)
-    s_m = series_sigma(obs, L.estimate_noise(obs, e + m))
+    s_m = series_sigma(obs, N.estimate_noise(obs, e + m))
     assert abs(np.sqrt(np.mean(s_m**2)) / SIGMA - 1) < 0.20
     assert np.all(np.abs(s_m / s - 1) < 0.05)
     # for contrast: the RMS of the residual is inflated more than threefold
@@ -113,10 +115,10 @@ def test_noise_bias_and_dof_over_replicates():
     with noise_dof (1 / sqrt(2 nu)) within 35 %, which the F test of locate relies on."""
     obs = three_curves()
     rng = np.random.default_rng(5)
-    est = np.array([series_sigma(obs, L.estimate_noise(obs, SIGMA * rng.standard_normal(
+    est = np.array([series_sigma(obs, N.estimate_noise(obs, SIGMA * rng.standard_normal(
         len(obs)))) for _ in range(60)])
     assert abs(est.mean() / SIGMA - 1) < 0.05
-    nu = series_sigma(obs, L.noise_dof(obs, np.zeros(len(obs))))
+    nu = series_sigma(obs, N.noise_dof(obs, np.zeros(len(obs))))
     predicted = 1 / np.sqrt(2 * nu.mean())
     assert abs((est / SIGMA).std() / predicted - 1) < 0.35
 
@@ -127,7 +129,7 @@ def test_noise_ignores_turning_points():
     obs = three_curves()
     e = SIGMA * np.random.default_rng(2).standard_normal(len(obs))
     jump = np.where(obs["branch"] == "loading", 3 * SIGMA, -3 * SIGMA)
-    np.testing.assert_allclose(L.estimate_noise(obs, e + jump), L.estimate_noise(obs, e),
+    np.testing.assert_allclose(N.estimate_noise(obs, e + jump), N.estimate_noise(obs, e),
                                rtol=1e-9)
 
 
@@ -138,18 +140,18 @@ def test_noise_guards():
     short = obs[(obs["curve"] == "torsion_0.30")].head(4)
     both = pd.concat([obs[obs["curve"] == "torsion_0.15"], short], ignore_index=True)
     r = np.concatenate([e[(obs["curve"] == "torsion_0.15").to_numpy()], [5.0, -5.0, 5.0, -5.0]])
-    s = L.estimate_noise(both, r)
+    s = N.estimate_noise(both, r)
     assert np.all(s[-4:] == s[0])
     # alone (no pooled differences worth the name): the RMS of its residual
-    s = L.estimate_noise(short, np.array([1.0, -1.0, 1.0, -1.0]))
+    s = N.estimate_noise(short, np.array([1.0, -1.0, 1.0, -1.0]))
     np.testing.assert_allclose(s, 1.0)
     # exact zero residual: never 0, floored at 1e-12 x the channel's peak |value|
-    s = L.estimate_noise(obs, np.zeros(len(obs)))
+    s = N.estimate_noise(obs, np.zeros(len(obs)))
     assert np.all(s > 0)
     peak = obs.groupby("channel")["value"].transform(lambda v: v.abs().max()).to_numpy()
     np.testing.assert_allclose(s, 1e-12 * peak)
     with pytest.raises(ValueError, match="residual"):
-        L.estimate_noise(obs, np.zeros(3))
+        N.estimate_noise(obs, np.zeros(3))
 
 
 # -------------------------------------------------------------------------- segments
@@ -273,7 +275,7 @@ def test_detects_constant_offset_on_torque_only():
     rng = np.random.default_rng(10)
     for _ in range(10):
         r = SIGMA * rng.standard_normal(len(obs)) + 2 * SIGMA * torque
-        sigma = L.estimate_noise(obs, r)
+        sigma = N.estimate_noise(obs, r)
         table = L.locate(obs, r, sigma)
         assert flagged(table, "channel", "torque")
         assert not flagged(table, "channel", "axial_force")
@@ -332,11 +334,11 @@ def test_mismatch_map_writes_png(tmp_path):
     obs = make_obs()
     m, _ = _tension_loading_misfit(obs, 2 * SIGMA)
     r = SIGMA * np.random.default_rng(7).standard_normal(len(obs)) + m
-    sigma = L.estimate_noise(obs, r)
+    sigma = N.estimate_noise(obs, r)
     table = L.locate(obs, r, sigma)
     path = tmp_path / "map.png"
-    assert L.mismatch_map(obs, r, sigma, table, path) == str(path)
+    assert F.mismatch_map(obs, r, sigma, table, path) == str(path)
     data = path.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
     with pytest.raises(ValueError, match="does not exist"):
-        L.mismatch_map(obs, r, sigma, table, tmp_path / "missing" / "map.png")
+        F.mismatch_map(obs, r, sigma, table, tmp_path / "missing" / "map.png")

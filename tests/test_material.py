@@ -28,7 +28,7 @@ def spectral_forms():
     from dolfinx import fem, mesh
 
     from brain_fe import _compat
-    from brain_fe.material import power_derivative, spectral_sum
+    from brain_fe.materials.spectral import power_derivative, spectral_sum
 
     msh = mesh.create_unit_cube(MPI.COMM_SELF, 1, 1, 1)
     C = fem.Constant(msh, np.eye(3))
@@ -87,7 +87,9 @@ def test_alpha_two_is_neo_hooke():
     from dolfinx import fem, mesh
 
     from brain_fe import _compat
-    from brain_fe.material import CompressibleMaterial, Ogden, QuadraticVolumetric
+    from brain_fe.materials import MaterialModel
+    from brain_fe.parameters import KAPPA, alpha
+    from brain_fe.parameters import mu as mu_
 
     msh = mesh.create_unit_cube(MPI.COMM_SELF, 1, 1, 1)
     F = fem.Constant(msh, np.eye(3))
@@ -95,7 +97,7 @@ def test_alpha_two_is_neo_hooke():
     Fv = ufl.variable(F)
     C = Fv.T * Fv
     J = ufl.det(Fv)
-    W = CompressibleMaterial(Ogden((mu,), (2.0,)), QuadraticVolumetric(kappa)).strain_energy(C, J)
+    W = MaterialModel.build().strain_energy(C, J, {mu_(0): mu, alpha(0): 2.0, KAPPA: kappa})
     Wnh = mu / 2 * (J ** (-2 / 3) * ufl.tr(C) - 3) + kappa / 2 * (J - 1) ** 2
     dx = ufl.dx(domain=msh, metadata={"quadrature_degree": 0})
     P, Pnh = ufl.diff(W, Fv), ufl.diff(Wnh, Fv)
@@ -110,7 +112,7 @@ def test_alpha_two_is_neo_hooke():
 
 
 def test_kappa_from_nu0():
-    from brain_fe.material import kappa_from_nu0
+    from brain_fe.materials import kappa_from_nu0
 
     # kappa = 2 mu (1 + nu) / (3 (1 - 2 nu)); nu = 0.49 -> 49.6667 mu
     assert kappa_from_nu0(1.0, 0.49) == pytest.approx(2 * 1.49 / (3 * 0.02))

@@ -1,4 +1,4 @@
-"""Reading and validating specimens and recordings tables (identification.recordings).
+"""Reading and validating specimens and recordings tables (recordings.tables).
 
 Fixtures are written in tmp_path from pandas (rows in file order: data row i, counted from
 0, is on CSV line i + 2) or as literal text where the exact layout matters.  Every error
@@ -15,15 +15,11 @@ import pytest
 
 from brain_fe import sampling
 from brain_fe.protocols import compression_tension, torsion
-from identification.recordings import (
-    RECORDING_COLUMNS,
-    RecordingsError,
-    key_for_test,
-    read_recordings,
-    read_specimens,
-    series,
-    write_table_atomic,
-)
+from brain_fe.vocabulary import test_key as key_for_test
+from recordings.cells import RecordingsError
+from recordings.schema import RECORDING_COLUMNS
+from recordings.tables import read_recordings, read_specimens, series
+from recordings.tables import write_table as write_table_atomic
 
 
 def _specimens() -> pd.DataFrame:
@@ -362,7 +358,7 @@ def test_specimen_requirement(tmp_path, caplog):
     spec = read_specimens(_csv(tmp_path, _specimens(), "specimens.csv"))
     region = _recordings().assign(specimen=lambda d: np.where(d.index < 62, "cortex", "S2"))
     p = _csv(tmp_path, region, "regions.csv")
-    with caplog.at_level(logging.INFO, logger="identification.recordings"):
+    with caplog.at_level(logging.INFO, logger="recordings.tables"):
         rec = read_recordings(p, spec, require_specimens=False)
     assert rec["specimen"].unique().tolist() == ["cortex", "S2"]
     assert "1 ids not in" in caplog.text and "region names: cortex" in caplog.text
@@ -375,7 +371,7 @@ def test_specimen_requirement(tmp_path, caplog):
 def test_series_far_below_amplitude_is_warned_not_rejected(tmp_path, caplog):
     rec = _recordings()
     rec.loc[rec["test"] == "torsion", "amplitude"] = 30.0  # a percentage by mistake
-    with caplog.at_level(logging.WARNING, logger="identification.recordings"):
+    with caplog.at_level(logging.WARNING, logger="recordings.tables"):
         out = read_recordings(_csv(tmp_path, rec, "r.csv"), require_specimens=False)
     assert ("S1", "torsion_30.00") in series(out)
     assert "(S1, torsion, amplitude 30) reaches only 0.3 of its amplitude" in caplog.text

@@ -9,8 +9,8 @@ import pytest
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
-    from analysis.brain_bank import BankSpec, make_brain_bank
     from analysis.reproduce import ReproduceProfile, reproduce
+    from recordings.brain_bank import BankSpec, make_brain_bank
 
     bank = tmp_path_factory.mktemp("bank")
     make_brain_bank(str(bank), BankSpec(seed=9, n_brains=2, elisa_brains=2,

@@ -18,11 +18,11 @@ import pandas as pd
 import pytest
 from mpi4py import MPI
 
-from brain_fe import sampling
+from brain_fe import sampling, store
 
 TESTS2 = "compression_tension,torsion:0.30"  # two protocols: enough, and fast
 # Columns whose values must be reproducible (wall_time_s is a measurement).
-COMPARE = [c for c in sampling.COLUMNS if c != "wall_time_s"]
+COMPARE = [c for c in store.COLUMNS if c != "wall_time_s"]
 
 
 def _env():
@@ -36,7 +36,7 @@ def _env():
 
 
 def _cli(out, *extra, n=5, tests=TESTS2):
-    return [sys.executable, "-m", "brain_fe.cli", "sample", "--n", str(n), "--seed", "7",
+    return [sys.executable, "-m", "brainmech", "sample", "--n", str(n), "--seed", "7",
             "--refinement", "1", "--mu-range", "0.1,5", "--alpha-range", "-40,-2",
             "--tests", tests, "--chunk-size", "1", "--out", str(out), *extra]
 
@@ -48,14 +48,14 @@ def _run(cmd, **kw):
 @pytest.fixture(scope="module")
 def reference_model():
     """A model built directly (not through sampling) for the independent reference."""
-    from brain_fe.api import make_geometry
+    from brain_fe.geometry import make as make_geometry
     from brain_fe.model import ForwardModel
 
     return ForwardModel(make_geometry("axisymmetric", 4.0, 5.0, 1, comm=MPI.COMM_SELF))
 
 
 def _direct(model, mu, alpha, test):
-    from brain_fe.model import MaterialParameters
+    from brain_fe.materials import MaterialParameters
 
     spec = sampling.parse_tests(test)[0]
     return model.run(spec.protocol(), MaterialParameters(mu=(mu,), alpha=(alpha,), nu0=0.49))
@@ -105,7 +105,7 @@ def test_design_reproducible_and_within_ranges(design):
     c = sampling.make_design(n, 3, design, (1.0, 2.0), (-3.0, -1.0))
     np.testing.assert_allclose(np.log2(c.mu_kPa), u_mu, rtol=0, atol=1e-12)
     np.testing.assert_allclose(c.alpha, -3.0 + 2.0 * u_al, rtol=0, atol=1e-12)
-    assert sampling.design_hash(a) == sampling.design_hash(b)
+    assert store.design_hash(a) == store.design_hash(b)
 
 
 def test_tests_option_names():
@@ -125,9 +125,9 @@ def test_mpirun_2_gives_the_serial_store(serial_store, reference_model, tmp_path
     r = _run(["mpirun", "-n", "2", *_cli(out)])
     assert r.returncode == 0, r.stderr
     assert r.stdout.count("samples stored") == 1  # rank 0 reports once
-    ranks = {p.name.split("-r")[1][:5] for p in sampling.chunk_files(out)}
+    ranks = {p.name.split("-r")[1][:5] for p in store.chunk_files(out)}
     assert ranks == {"00000", "00001"}
-    a, b = sampling.load_samples(serial_store), sampling.load_samples(out)
+    a, b = store.load_samples(serial_store), store.load_samples(out)
     assert len(a) == 5 * (41 + 21)
     pd.testing.assert_frame_equal(a[COMPARE], b[COMPARE], check_exact=False, rtol=1e-12,
                                   atol=1e-12)
@@ -149,7 +149,7 @@ def test_sigkill_then_resume_stores_every_sample_once(serial_store, tmp_path):
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120
     try:
-        while not sampling.chunk_files(out):
+        while not store.chunk_files(out):
             assert proc.poll() is None, "the run ended before writing a chunk"
             assert time.monotonic() < deadline
             time.sleep(0.005)
@@ -157,7 +157,7 @@ def test_sigkill_then_resume_stores_every_sample_once(serial_store, tmp_path):
     finally:
         proc.kill()
         proc.wait()
-    before = sampling.read_chunks(out, with_file=True)
+    before = store.read_chunks(out, with_file=True)
     first = set(before["sample"])
     assert 1 <= len(first) < 6, "the kill came too late to test resuming"
     old_files = set(before.chunk)
@@ -167,26 +167,26 @@ def test_sigkill_then_resume_stores_every_sample_once(serial_store, tmp_path):
     assert r.returncode == 0, r.stderr
     assert f"computed {6 - len(first)} in this run" in r.stdout
     assert not list((out / "chunks").glob(".tmp-*"))
-    raw = sampling.read_chunks(out, with_file=True)
+    raw = store.read_chunks(out, with_file=True)
     per_pair = raw.groupby(["sample", "test"]).chunk.nunique()
     assert len(per_pair) == 6 * 3 and (per_pair == 1).all()
     new = raw[~raw.chunk.isin(old_files)]
     assert set(new["sample"]) == set(range(6)) - first  # only the missing ones
     assert set(raw[raw.chunk.isin(old_files)].chunk) == old_files  # old chunks untouched
-    s = sampling.summarize(out)
+    s = store.summarize(out)
     assert (s.total, s.done, s.failed, s.missing) == (6, 6, 0, 0)
     # the first 5 Sobol points of n = 6 and n = 5 coincide: compare with the serial store
-    df = sampling.load_samples(out)
-    ref = sampling.load_samples(serial_store)
+    df = store.load_samples(out)
+    ref = store.load_samples(serial_store)
     for test in ("compression_tension", "torsion_0.30"):
         a = df[(df.test == test) & (df["sample"] < 5)].reset_index(drop=True)
         b = ref[ref.test == test].reset_index(drop=True)
         pd.testing.assert_frame_equal(a[COMPARE], b[COMPARE], rtol=1e-12, atol=1e-12)
     # a duplicated chunk (e.g. copied by hand) is de-duplicated on load
-    src = sampling.chunk_files(out)[0]
+    src = store.chunk_files(out)[0]
     shutil.copy(src, src.with_name("zz-copy.parquet"))
-    pd.testing.assert_frame_equal(sampling.load_samples(out), df)
-    assert sampling.summarize(out).done == 6
+    pd.testing.assert_frame_equal(store.load_samples(out), df)
+    assert store.summarize(out).done == 6
 
 
 # ------------------------------------------------------------------------------ manifests
@@ -215,7 +215,7 @@ def test_corrupted_or_foreign_manifest_is_refused(serial_store, tmp_path, case):
         args = ["--tests", "compression_tension"]
         expect = ("different tests (stored compression_tension,torsion_0.30, requested "
                   "compression_tension)")
-    before = {p.name: p.read_bytes() for p in sampling.chunk_files(out)}
+    before = {p.name: p.read_bytes() for p in store.chunk_files(out)}
     cmd = _cli(out)
     if args:  # a later option wins in argparse
         cmd += args
@@ -224,10 +224,10 @@ def test_corrupted_or_foreign_manifest_is_refused(serial_store, tmp_path, case):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("brainmech sample: error: "), r.stderr
     assert expect in lines[0] and "Traceback" not in r.stderr
-    assert {p.name: p.read_bytes() for p in sampling.chunk_files(out)} == before
+    assert {p.name: p.read_bytes() for p in store.chunk_files(out)} == before
     if case in ("bad_json", "wrong_schema", "checksum"):
-        with pytest.raises(sampling.StoreError):
-            sampling.load_samples(out)
+        with pytest.raises(store.StoreError):
+            store.load_samples(out)
 
 
 # ------------------------------------------------------------------------------ failures
@@ -262,10 +262,10 @@ def test_failed_solves_are_recorded_and_counted(tmp_path, reference_model):
     assert summ.failures == [(2, "torsion_0.30",
                               "ConvergenceError: torsion: Newton failed at shear = 0.27 "
                               "(provoked)")]
-    full = sampling.load_samples(out, include_failed=True)
+    full = store.load_samples(out, include_failed=True)
     f = full[full.status == "failed"]
     assert len(f) == 1 and f["sample"].iloc[0] == 2 and f.torque_mNmm.isna().all()
-    ok = sampling.load_samples(out)
+    ok = store.load_samples(out)
     assert len(ok) == 4 * (41 + 21) - 21
     _assert_matches_direct(ok, reference_model, 2, "compression_tension", "compression_tension")
     _assert_matches_direct(ok, reference_model, 1, "torsion_0.30", "torsion:0.30")

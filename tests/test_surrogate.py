@@ -24,7 +24,7 @@ def test_split_never_shares_a_parameter_set():
 def test_fe_stress_scales_with_mu_at_fixed_nu0(axi_slip):
     """The exact scaling behind scale_by_mu: with nu0 fixed (kappa ~ mu) every stress of the
     one-term model is proportional to mu (here to 1e-9)."""
-    from brain_fe.model import MaterialParameters
+    from brain_fe.materials import MaterialParameters
     from brain_fe.protocols import Protocol
 
     prot = Protocol("compression_tension", (1.0, 0.85, 1.1), max_increment=0.05)
@@ -37,7 +37,7 @@ def test_fe_stress_scales_with_mu_at_fixed_nu0(axi_slip):
 def test_search_end_to_end_and_metrics(tiny_models, tiny_store):
     """metrics.json per test; its R^2 statistics recomputed independently from the saved
     models through the scikit-learn pipeline and sklearn's r2_score (1e-9)."""
-    from brain_fe.sampling import load_samples
+    from brain_fe.store import load_samples
     from surrogate.data import TEST_KEYS, arrays, split_by_parameter_set, table_for_test
     from surrogate.persist import load_surrogates
 

@@ -1,4 +1,6 @@
-r"""Compressible N-term Ogden material in UFL (DESIGN.md section 3).
+r"""Symmetric spectral sums sum_i g(c_i) in UFL, smooth through repeated eigenvalues.
+
+Used by the Ogden law (:mod:`brain_fe.materials.ogden`), DESIGN.md section 3:
 
 .. math::
 
@@ -34,8 +36,7 @@ quadratically through the reference state, on unloading and in torsion.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable
 from math import factorial
 
 import ufl
@@ -109,90 +110,3 @@ def spectral_sum(A, g: GDeriv):
     general = g(c_simple, 0) + pair
 
     return ufl.conditional(ufl.lt(J2, TOL_TRIPLE * m**2), near_triple, general)
-
-
-# --------------------------------------------------------------------------- volumetric
-
-
-@dataclass(frozen=True)
-class QuadraticVolumetric:
-    """U(J) = kappa/2 (J - 1)^2  [kPa]."""
-
-    kappa: object
-
-    name = "quadratic"
-
-    def strain_energy(self, J):
-        return self.kappa / 2 * (J - 1) ** 2
-
-
-@dataclass(frozen=True)
-class LogVolumetric:
-    """U(J) = kappa/4 (J^2 - 1 - 2 ln J)  [kPa]."""
-
-    kappa: object
-
-    name = "log"
-
-    def strain_energy(self, J):
-        return self.kappa / 4 * (J**2 - 1 - 2 * ufl.ln(J))
-
-
-VOLUMETRIC = {"quadratic": QuadraticVolumetric, "log": LogVolumetric}
-
-
-def kappa_from_nu0(mu: float, nu0: float) -> float:
-    """Bulk modulus [kPa] from the initial Poisson ratio:
-    kappa = 2 mu (1 + nu0) / (3 (1 - 2 nu0))."""
-    if not 0.0 <= nu0 < 0.5:
-        raise ValueError(f"nu0 must lie in [0, 0.5), got {nu0}")
-    return 2.0 * mu * (1.0 + nu0) / (3.0 * (1.0 - 2.0 * nu0))
-
-
-# --------------------------------------------------------------------------- isochoric
-
-
-@dataclass(frozen=True)
-class Ogden:
-    """Isochoric N-term Ogden part; ``mu[p]`` in kPa, ``alpha[p]`` dimensionless, alpha != 0.
-
-    Entries may be floats or UFL expressions (``fem.Constant``) so compiled forms are
-    reused across parameter values.
-    """
-
-    mu: Sequence
-    alpha: Sequence
-
-    def __post_init__(self):
-        if len(self.mu) != len(self.alpha) or not self.mu:
-            raise ValueError("Ogden needs as many mu as alpha values (at least one)")
-
-    def g(self) -> GDeriv:
-        """Combined spectral function sum_p 2 mu_p / alpha_p^2 c^(alpha_p/2)."""
-        terms = [(2 * mu / alpha**2, power_derivative(alpha / 2))
-                 for mu, alpha in zip(self.mu, self.alpha, strict=True)]
-
-        def g(c, n: int = 0):
-            return sum(coef * gp(c, n) for coef, gp in terms)
-
-        return g
-
-    def strain_energy_isochoric(self, Cbar):
-        offset = sum(6 * mu / alpha**2 for mu, alpha in zip(self.mu, self.alpha, strict=True))
-        return spectral_sum(Cbar, self.g()) - offset
-
-
-@dataclass(frozen=True)
-class CompressibleMaterial:
-    """W(C) = W_iso(J^(-2/3) C) + U(J): the isochoric/volumetric split of DESIGN.md."""
-
-    isochoric: Ogden
-    volumetric: QuadraticVolumetric | LogVolumetric
-
-    def strain_energy(self, C, J=None):
-        """Energy density [kPa]; pass ``J = det F`` so that inverted elements give NaN
-        (and a load-step cut-back) instead of the always-positive sqrt(det C)."""
-        if J is None:
-            J = ufl.sqrt(ufl.det(C))
-        Cbar = J ** (-2.0 / 3.0) * C
-        return self.isochoric.strain_energy_isochoric(Cbar) + self.volumetric.strain_energy(J)

@@ -24,12 +24,17 @@ import numpy as np
 import pandas as pd
 from mpi4py import MPI
 
-from .homogeneous import UNIAXIAL_CURVES, HomogeneousSimulator
-from .simulators import FESimulator
+from brain_fe.parameters import Param
+from brain_fe.vocabulary import COMPRESSION_TENSION
+
+from .base import Prediction
+from .coordinates import LOG10_K, NU0
+from .fe import FESimulator
+from .homogeneous import STRESS_OFFSET, STRETCH_OFFSET, UNIAXIAL_CURVES, HomogeneousSimulator
 
 log = logging.getLogger(__name__)
 # what the FE model of the glued specimen depends on (the offsets act on the records)
-FE_PARAMETERS = ("mu_0", "alpha_0", "nu0", "log10_k")
+FE_PARAMETERS = (Param("mu", 0), Param("alpha", 0), NU0, LOG10_K)
 
 
 class GluedCubeSimulator:
@@ -42,25 +47,26 @@ class GluedCubeSimulator:
         self.obs = obs.reset_index(drop=True)
         self.nu0 = nu0
         self.refinement = refinement
-        self.homogeneous = HomogeneousSimulator(self.obs)
+        self.homogeneous = HomogeneousSimulator(self.obs, nu0=nu0)
         curve = self.obs["curve"].astype(str).to_numpy()
         self._uni = np.flatnonzero(np.isin(curve, UNIAXIAL_CURVES))
-        fe_obs = self.obs.iloc[self._uni].assign(test="compression_tension", amplitude=np.nan)
+        fe_obs = self.obs.iloc[self._uni].assign(test=COMPRESSION_TENSION, amplitude=np.nan)
         fe_obs = fe_obs.reset_index(drop=True)
         self._fe = None
         if len(fe_obs):
             self._fe = FESimulator(fe_obs, edge_mm / math.sqrt(math.pi), edge_mm,
                                    refinement=refinement, nu0=nu0, comm=comm)
 
-    def predict(self, values: dict, names=()) -> tuple[np.ndarray, np.ndarray]:
-        values = dict(values)
-        values.setdefault("nu0", self.nu0)
-        if "log10_k" not in values or self._fe is None:
-            return self.homogeneous.predict(values, list(names))
-        if values.get("stretch_offset", 0.0) != 0.0:
+    def predict(self, values, wrt=()) -> Prediction:
+        values = {Param.parse(k): float(v) for k, v in values.items()}
+        names = tuple(Param.parse(q) for q in wrt)
+        values.setdefault(NU0, self.nu0)
+        if LOG10_K not in values or self._fe is None:
+            return self.homogeneous.predict(values, names)
+        if values.get(STRETCH_OFFSET, 0.0) != 0.0:
             raise ValueError("a stretch offset and the glued-end model cannot be combined")
-        hom_vals = {k: v for k, v in values.items() if k != "log10_k"}
-        hom_names = [n for n in names if n != "log10_k"]
+        hom_vals = {k: v for k, v in values.items() if k != LOG10_K}
+        hom_names = [n for n in names if n != LOG10_K]
         y, jh = self.homogeneous.predict(hom_vals, hom_names)
         J = np.zeros((len(y), len(names)))
         for j, n in enumerate(names):
@@ -70,8 +76,8 @@ class GluedCubeSimulator:
         fe_vals = {k: v for k, v in values.items() if k in FE_PARAMETERS}
         yf, jf = self._fe.predict(fe_vals, fe_names)
         # offsets of the measurement layer act on the recorded values, not on the physics
-        y[self._uni] = yf + float(values.get("stress_offset", 0.0))
+        y[self._uni] = yf + values.get(STRESS_OFFSET, 0.0)
         for j, n in enumerate(names):
             J[self._uni, j] = jf[:, fe_names.index(n)] if n in fe_names else (
-                1.0 if n == "stress_offset" else 0.0)
-        return y, J
+                1.0 if n == STRESS_OFFSET else 0.0)
+        return Prediction(y, J, names)

@@ -23,6 +23,7 @@ import numpy as np
 import pandas as pd
 
 from brain_fe.io import write_json_atomic
+from brain_fe.parallel import Progress
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +99,7 @@ def region_average_curves(recordings: pd.DataFrame, specimens: pd.DataFrame,
     the paper's region-wise curves. Geometry-normalised quantities are averaged (nominal
     stress, torque-derived shear stress, axial force per pi R^2) and returned for the
     nominal radius; the "specimen" of an averaged curve is its region."""
-    from brain_fe.model import shear_stress_kPa, torque_mNmm
+    from brain_fe.vocabulary import shear_stress_kPa, torque_mNmm
 
     geo = specimens.set_index("specimen")
     R = recordings.specimen.map(geo.radius_mm).to_numpy(float)
@@ -122,20 +123,18 @@ def make_brain_bank(out_dir: str, spec: BankSpec = BankSpec(), *,
                     progress: bool = False) -> dict:
     """Generate every table of the bank into ``out_dir`` (atomically, after all solves)."""
     from brain_fe.io import write_table_atomic
-    from identification.synthetic import make_recordings
+
+    from .synthetic import make_recordings
 
     mech, comp, truth, region_truth, z = _tables(spec)
     cache: dict = {}
     parts = []
-    it = range(len(mech))
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, desc="virtual brain bank", unit="specimen", disable=None)
-    for i in it:
-        parts.append(make_recordings(mech.iloc[[i]], truth, noise=spec.noise,
-                                     seed=spec.seed * 1000 + i, nu0=spec.nu0,
-                                     refinement=spec.refinement, model_cache=cache))
+    with Progress(len(mech), "virtual brain bank", "specimen", enabled=progress) as bar:
+        for i in range(len(mech)):
+            parts.append(make_recordings(mech.iloc[[i]], truth, noise=spec.noise,
+                                         seed=spec.seed * 1000 + i, nu0=spec.nu0,
+                                         refinement=spec.refinement, model_cache=cache))
+            bar.update()
     rec = pd.concat(parts, ignore_index=True)
     regions = pd.DataFrame({"specimen": list(spec.regions), "region": list(spec.regions),
                             "brain": "average", "radius_mm": 4.0, "height_mm": 5.0})
@@ -146,7 +145,7 @@ def make_brain_bank(out_dir: str, spec: BankSpec = BankSpec(), *,
     for name, df in files.items():
         write_table_atomic(df, os.path.join(out_dir, name))
     both = sorted(set(mech.specimen) & set(comp.specimen))
-    summary = {"synthetic": True, "generator": "analysis.brain_bank.make_brain_bank",
+    summary = {"synthetic": True, "generator": "recordings.brain_bank.make_brain_bank",
                "command": f"brainmech make-brain-bank --seed {spec.seed} --out {out_dir}",
                "spec": {k: v for k, v in asdict(spec).items()},
                "counts": {"mechanics": len(mech), "composition": len(comp),

@@ -13,17 +13,25 @@ import numpy as np
 import pandas as pd
 from mpi4py import MPI
 
-from brain_fe.model import ForwardModel, MaterialParameters
+from brain_fe import geometry
+from brain_fe.materials import MaterialParameters
+from brain_fe.model import ForwardModel
+from brain_fe.protocols import make
+from brain_fe.vocabulary import (
+    AXIAL_FORCE,
+    CHANNELS,
+    COMPRESSION_TENSION,
+    TEST_CHANNELS,
+    TORSION,
+)
 
-DEFAULT_TESTS = (("compression_tension", 0.15), ("torsion", 0.15), ("torsion", 0.30))
+from .schema import RECORDING_COLUMNS
+
+DEFAULT_TESTS = ((COMPRESSION_TENSION, 0.15), (TORSION, 0.15), (TORSION, 0.30))
 
 
-RECORDING_COLUMNS = ["specimen", "test", "amplitude", "cycle", "branch", "time_s", "stretch",
-                     "shear", "nominal_stress_kPa", "torque_mNmm", "axial_force_mN"]
-
-
-def record(fm: ForwardModel, params: MaterialParameters, protocols, specimen: str, *,
-           noise: float, rng, artefacts=None, amplitudes=None) -> pd.DataFrame:
+def record(fm: ForwardModel, params, protocols, specimen: str, *, noise: float, rng,
+           artefacts=None, interface=None, amplitudes=None) -> pd.DataFrame:
     """Recordings of one specimen: ``fm`` run through every protocol, Gaussian noise of
     ``noise`` times each channel's peak added, in the recordings-table layout.
     ``amplitudes`` (default: each protocol's own) label the tests in the table."""
@@ -31,10 +39,8 @@ def record(fm: ForwardModel, params: MaterialParameters, protocols, specimen: st
         amplitudes = [prot.amplitude for prot in protocols]
     rows = []
     for prot, amp in zip(protocols, amplitudes, strict=True):
-        df = fm.run(prot, params, artefacts=artefacts)
-        chans = (["nominal_stress_kPa"] if prot.test == "compression_tension"
-                 else ["torque_mNmm", "axial_force_mN"])
-        for ch in chans:
+        df = fm.run(prot, params, artefacts=artefacts, interface=interface)
+        for ch in (CHANNELS[c].column for c in TEST_CHANNELS[prot.test]):
             peak = float(np.max(np.abs(df[ch])))
             df[ch] = df[ch] + noise * peak * rng.normal(size=len(df))
         df.insert(0, "specimen", specimen)
@@ -46,8 +52,8 @@ def record(fm: ForwardModel, params: MaterialParameters, protocols, specimen: st
         if c not in out:
             out[c] = np.nan
     # recorded in torsion only; compression/tension reports the stress
-    out.loc[out.test == "compression_tension", "axial_force_mN"] = np.nan
-    return out[RECORDING_COLUMNS]
+    out.loc[out.test == COMPRESSION_TENSION, AXIAL_FORCE] = np.nan
+    return out[list(RECORDING_COLUMNS)]
 
 
 def make_recordings(specimens: pd.DataFrame, truth: pd.DataFrame, *, noise: float = 0.01,
@@ -56,8 +62,6 @@ def make_recordings(specimens: pd.DataFrame, truth: pd.DataFrame, *, noise: floa
                     model_cache: dict | None = None) -> pd.DataFrame:
     """Recordings (one row per point) of every specimen in ``specimens`` (columns of the
     specimens table) with the parameters of ``truth`` (columns specimen, mu_kPa, alpha)."""
-    from brain_fe.api import make_geometry, make_protocol
-
     rng = np.random.default_rng(seed)
     cache = {} if model_cache is None else model_cache
     parts = []
@@ -65,11 +69,11 @@ def make_recordings(specimens: pd.DataFrame, truth: pd.DataFrame, *, noise: floa
     for s in specimens.itertuples(index=False):
         R, H = float(s.radius_mm), float(s.height_mm)
         if (R, H) not in cache:
-            cache[(R, H)] = ForwardModel(make_geometry("axisymmetric", R, H, refinement,
+            cache[(R, H)] = ForwardModel(geometry.make("axisymmetric", R, H, refinement,
                                                        comm=MPI.COMM_SELF))
         t = truth.loc[s.specimen]
         p = MaterialParameters(mu=(float(t.mu_kPa),), alpha=(float(t.alpha),), nu0=nu0)
-        parts.append(record(cache[(R, H)], p, [make_protocol(test, amp) for test, amp in tests],
+        parts.append(record(cache[(R, H)], p, [make(test, amp) for test, amp in tests],
                             s.specimen, noise=noise, rng=rng,
                             amplitudes=[amp for _, amp in tests]))
     return pd.concat(parts, ignore_index=True)

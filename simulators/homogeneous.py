@@ -1,7 +1,7 @@
 r"""Homogeneous (analytical) compressible N-term Ogden model: a fast base model for cube
 specimens in uniaxial tension/compression and simple shear.
 
-Material (the same as ``brain_fe/material.py``, DESIGN.md section 3):
+Material (the same as ``brain_fe/materials``, DESIGN.md section 3):
 
 .. math::
 
@@ -35,11 +35,14 @@ lateral stretch).
 from __future__ import annotations
 
 import logging
-import re
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 import pandas as pd
+
+from brain_fe.parameters import KAPPA, Param
+
+from .base import Prediction
 
 logger = logging.getLogger(__name__)
 
@@ -272,9 +275,11 @@ def simple_shear_stress(
     return _shear(shear, mu, alpha, gradient=False)
 
 
-_TERM = re.compile(r"^(mu|alpha)_(\d+)$")
 _SCALARS = ("nu0", "kappa", "stretch_offset", "stress_offset", "shear_offset")
 OBS_COLUMNS = ("specimen", "curve", "channel", "branch", "cycle", "control", "time_s", "value")
+NU0 = Param("nu0")
+STRETCH_OFFSET, STRESS_OFFSET, SHEAR_OFFSET = (Param("stretch_offset"), Param("stress_offset"),
+                                               Param("shear_offset"))
 
 
 class HomogeneousSimulator:
@@ -284,20 +289,20 @@ class HomogeneousSimulator:
     value``; ``curve`` is tension | compression | simple_shear, ``channel`` is ``stress``,
     ``control`` the stretch [-] (tension/compression) or amount of shear [-].
 
-    Parameter names (``names_available``): ``mu_p`` [kPa] and ``alpha_p`` [-] for
-    p = 0..N-1 (N = number of ``mu_p`` keys in the values; up to ``MAX_TERMS`` listed),
-    ``nu0`` [-] (kappa = 2 mu (1+nu0)/(3(1-2 nu0)), mu = sum mu_p; derivatives with respect
-    to mu_p are taken at fixed nu0), or ``kappa`` [kPa] directly when ``nu0`` is absent,
-    ``stretch_offset`` [-] (added to the stretch of tension/compression rows),
+    Parameters: ``mu_p`` [kPa] and ``alpha_p`` [-] for p = 0..N-1 (N = number of ``mu_p`` in
+    the values), ``nu0`` [-] (kappa = 2 mu (1+nu0)/(3(1-2 nu0)), mu = sum mu_p; derivatives
+    with respect to mu_p are taken at fixed nu0), or ``kappa`` [kPa] directly when ``nu0`` is
+    absent, ``stretch_offset`` [-] (added to the stretch of tension/compression rows),
     ``stress_offset`` [kPa] (added to tension/compression predictions), ``shear_offset``
     [kPa] (added to simple-shear predictions). Offsets default to 0.
     """
 
+    kind = "homogeneous"
     names_available: tuple[str, ...] = tuple(
-        f"{k}_{p}" for p in range(MAX_TERMS) for k in ("mu", "alpha")
-    ) + _SCALARS
+        f"{k}_{p}" for p in range(MAX_TERMS) for k in ("mu", "alpha")) + _SCALARS
 
-    def __init__(self, obs: pd.DataFrame, volumetric: str = "quadratic") -> None:
+    def __init__(self, obs: pd.DataFrame, volumetric: str = "quadratic",
+                 nu0: float = 0.49) -> None:
         _check_volumetric(volumetric)
         missing = [c for c in OBS_COLUMNS if c not in obs.columns]
         if missing:
@@ -317,6 +322,8 @@ class HomogeneousSimulator:
         if not np.all(np.isfinite(control)):
             i = int(np.flatnonzero(~np.isfinite(control))[0])
             raise ValueError(f"observation table: row {i}, column control: not a finite number")
+        self.obs = obs.reset_index(drop=True)
+        self.nu0 = nu0
         self.volumetric = volumetric
         self.n_obs = len(obs)
         self._uni = np.flatnonzero(np.isin(curve, UNIAXIAL_CURVES))
@@ -327,78 +334,84 @@ class HomogeneousSimulator:
             raise ValueError("observation table: column control: stretches must be positive")
 
     @staticmethod
-    def _parse(values: Mapping[str, float]) -> tuple[list[float], list[float]]:
-        unknown = [k for k in values if not (_TERM.match(k) or k in _SCALARS)]
+    def _parse(values: dict[Param, float]) -> tuple[list[float], list[float]]:
+        unknown = [str(k) for k in values
+                   if not (k.family in ("mu", "alpha") and k.index is not None
+                           or str(k) in _SCALARS)]
         if unknown:
             raise ValueError(f"unknown parameter name(s) {unknown}; "
                              "expected mu_p, alpha_p, nu0, kappa or offsets")
-        idx = sorted(int(_TERM.match(k).group(2)) for k in values if k.startswith("mu_"))
+        idx = sorted(k.index for k in values if k.family == "mu")
         n = len(idx)
         if n == 0 or idx != list(range(n)):
-            raise ValueError(f"Ogden terms must be mu_0..mu_(N-1), got {sorted(values)}")
-        missing = [f"alpha_{p}" for p in range(n) if f"alpha_{p}" not in values]
-        extra = [k for k in values if k.startswith("alpha_") and int(k[6:]) >= n]
+            raise ValueError(f"Ogden terms must be mu_0..mu_(N-1), got "
+                             f"{sorted(map(str, values))}")
+        missing = [f"alpha_{p}" for p in range(n) if Param("alpha", p) not in values]
+        extra = [str(k) for k in values if k.family == "alpha" and k.index >= n]
         if missing or extra:
             raise ValueError(f"need exactly alpha_0..alpha_{n - 1} with mu_0..mu_{n - 1}; "
                              f"missing {missing}, without mu: {extra}")
-        return ([float(values[f"mu_{p}"]) for p in range(n)],
-                [float(values[f"alpha_{p}"]) for p in range(n)])
+        return ([float(values[Param("mu", p)]) for p in range(n)],
+                [float(values[Param("alpha", p)]) for p in range(n)])
 
-    def predict(self, values: Mapping[str, float], names: Sequence[str]
-                ) -> tuple[np.ndarray, np.ndarray]:
-        """Stresses y [kPa] at every row of ``obs`` (row order) and J = dy/d(names),
-        shape (n_obs, len(names)) (analytic derivatives)."""
+    def predict(self, values: Mapping, wrt: Sequence = ()) -> Prediction:
+        """Stresses y [kPa] at every row of ``obs`` (row order) and J = dy/d(wrt),
+        shape (n_obs, len(wrt)) (analytic derivatives)."""
+        values = {Param.parse(k): float(v) for k, v in values.items()}
+        names = tuple(Param.parse(q) for q in wrt)
+        if NU0 not in values and KAPPA not in values:
+            raise ValueError("values need 'nu0' (or 'kappa')")
         mu, alpha = self._parse(values)
         n = len(mu)
         mu_total = float(np.sum(mu))
-        if "nu0" in values:
-            nu0 = float(values["nu0"])
+        if NU0 in values and KAPPA in values:
+            raise ValueError("give nu0 or kappa, not both")
+        if NU0 in values:
+            nu0 = values[NU0]
             kappa = bulk_modulus(mu_total, nu0)
             dk_dmu = kappa / mu_total if mu_total != 0.0 else 0.0
-            if "kappa" in names:
+            if KAPPA in names:
                 raise ValueError("'kappa' cannot be a free parameter when 'nu0' is given")
-        elif "kappa" in values:
-            nu0 = None
-            kappa = float(values["kappa"])
-            dk_dmu = 0.0
-            if "nu0" in names:
-                raise ValueError("'nu0' is a free parameter but only 'kappa' is given")
         else:
-            raise ValueError("values need 'nu0' (or 'kappa')")
+            nu0 = None
+            kappa = values[KAPPA]
+            dk_dmu = 0.0
+            if NU0 in names:
+                raise ValueError("'nu0' is a free parameter but only 'kappa' is given")
         for name in names:
-            match = _TERM.match(name)
-            if not (name in _SCALARS or (match and int(match.group(2)) < n)):
-                raise ValueError(f"cannot differentiate with respect to {name!r} "
+            if not (str(name) in _SCALARS
+                    or (name.family in ("mu", "alpha") and (name.index or 0) < n)):
+                raise ValueError(f"cannot differentiate with respect to {str(name)!r} "
                                  f"({n} Ogden term(s) in the values)")
-        st_off = float(values.get("stretch_offset", 0.0))
+        st_off = values.get(STRETCH_OFFSET, 0.0)
         y = np.empty(self.n_obs)
         jac = np.zeros((self.n_obs, len(names)))
         col = {name: j for j, name in enumerate(names)}
         if self._uni.size:
             yu, _, dm, da, dk, dl = _uniaxial(self._stretch, mu, alpha, kappa,
                                               self.volumetric, st_off, gradient=True)
-            y[self._uni] = yu + float(values.get("stress_offset", 0.0))
+            y[self._uni] = yu + values.get(STRESS_OFFSET, 0.0)
             for p in range(n):
-                if f"mu_{p}" in col:
-                    jac[self._uni, col[f"mu_{p}"]] = dm[p] + dk_dmu * dk
-                if f"alpha_{p}" in col:
-                    jac[self._uni, col[f"alpha_{p}"]] = da[p]
-            if "nu0" in col:
-                jac[self._uni, col["nu0"]] = _dkappa_dnu0(mu_total, nu0) * dk
-            if "kappa" in col:
-                jac[self._uni, col["kappa"]] = dk
-            if "stretch_offset" in col:
-                jac[self._uni, col["stretch_offset"]] = dl
-            if "stress_offset" in col:
-                jac[self._uni, col["stress_offset"]] = 1.0
+                if Param("mu", p) in col:
+                    jac[self._uni, col[Param("mu", p)]] = dm[p] + dk_dmu * dk
+                if Param("alpha", p) in col:
+                    jac[self._uni, col[Param("alpha", p)]] = da[p]
+            if NU0 in col:
+                jac[self._uni, col[NU0]] = _dkappa_dnu0(mu_total, nu0) * dk
+            if KAPPA in col:
+                jac[self._uni, col[KAPPA]] = dk
+            if STRETCH_OFFSET in col:
+                jac[self._uni, col[STRETCH_OFFSET]] = dl
+            if STRESS_OFFSET in col:
+                jac[self._uni, col[STRESS_OFFSET]] = 1.0
         if self._shr.size:
             ys, dm, da = _shear(self._gamma, mu, alpha, gradient=True)
-            y[self._shr] = ys + float(values.get("shear_offset", 0.0))
+            y[self._shr] = ys + values.get(SHEAR_OFFSET, 0.0)
             for p in range(n):
-                if f"mu_{p}" in col:
-                    jac[self._shr, col[f"mu_{p}"]] = dm[p]
-                if f"alpha_{p}" in col:
-                    jac[self._shr, col[f"alpha_{p}"]] = da[p]
-            if "shear_offset" in col:
-                jac[self._shr, col["shear_offset"]] = 1.0
-        return y, jac
+                if Param("mu", p) in col:
+                    jac[self._shr, col[Param("mu", p)]] = dm[p]
+                if Param("alpha", p) in col:
+                    jac[self._shr, col[Param("alpha", p)]] = da[p]
+            if SHEAR_OFFSET in col:
+                jac[self._shr, col[SHEAR_OFFSET]] = 1.0
+        return Prediction(y, jac, names)

@@ -1,0 +1,5 @@
+import sys
+
+from brainmech.main import main
+
+sys.exit(main())

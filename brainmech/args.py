@@ -1,0 +1,99 @@
+"""Argument types of the command line: numbers are validated where they enter.
+
+Each type raises ``argparse.ArgumentTypeError`` (exit code 2, one line naming the option)
+for text that is not what the option needs: not a number, NaN or infinite, a list that is
+not comma-separated numbers.  Whether a number makes physical sense (nu0 < 0.5, alpha != 0)
+is the library's to say, in domain terms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+
+
+def _number(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return v
+
+
+def finite(text: str) -> float:
+    return _number(text)
+
+
+def positive(text: str) -> float:
+    v = _number(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return v
+
+
+def non_negative(text: str) -> float:
+    v = _number(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return v
+
+
+def count(minimum: int = 1):
+    """A whole number >= ``minimum``."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if v < minimum:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, "
+                                             f"got {text!r}")
+        return v
+
+    parse.__name__ = f"count>={minimum}"
+    return parse
+
+
+def floats(text: str) -> tuple[float, ...]:
+    """Comma-separated finite numbers."""
+    parts = [t for t in text.split(",") if t.strip()]
+    vals = []
+    for t in parts:
+        try:
+            v = float(t)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected comma-separated numbers, got {text!r}") from None
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"expected finite numbers, got {text!r}")
+        vals.append(v)
+    if not vals:
+        raise argparse.ArgumentTypeError("expected at least one number")
+    return tuple(vals)
+
+
+def interval(text: str) -> tuple[float, float]:
+    """Two numbers ``lo,hi`` with lo < hi."""
+    vals = floats(text)
+    if len(vals) != 2 or not vals[0] < vals[1]:
+        raise argparse.ArgumentTypeError(f"expected two numbers lo,hi with lo < hi, got {text!r}")
+    return vals
+
+
+def names(text: str) -> list[str]:
+    """A comma list of names (empty entries dropped)."""
+    out = [t.strip() for t in text.split(",") if t.strip()]
+    if not out:
+        raise argparse.ArgumentTypeError("expected at least one name")
+    return out
+
+
+def accept_negative_lists(p: argparse.ArgumentParser) -> None:
+    """Let negative comma lists through as option values (``--alpha -25,5``,
+    ``--alpha-range -40,-2``); argparse otherwise only recognises single negative numbers
+    and takes ``-25,5`` for an option."""
+    p._negative_number_matcher = re.compile(r"^-\.?\d[\d.,eE+-]*$")

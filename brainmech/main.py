@@ -1,0 +1,58 @@
+"""``brainmech``: parse the command line, run one subcommand, report errors in one line."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from importlib.metadata import PackageNotFoundError, version
+
+from .commands import COMMANDS
+from .errors import CLIError
+
+log = logging.getLogger("brainmech")
+
+
+def _version() -> str:
+    try:
+        return version("brainmech")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree
+        return "unknown"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="brainmech",
+        description="Brain-tissue mechanics: FE model of glued cylinders, surrogates, "
+        "identification, composition analysis and missing-physics diagnosis.")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for cmd in COMMANDS:
+        cmd.add(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 0
+    from brain_fe.logs import configure_logging
+    from brain_fe.solver import ConvergenceError
+
+    configure_logging(logging.DEBUG if args.verbose else logging.INFO)
+    try:
+        return args.run(args)
+    except (CLIError, ValueError, ConvergenceError, OSError) as exc:
+        msg = " ".join(str(exc).splitlines()) or type(exc).__name__
+        print(f"brainmech {args.command}: error: {msg}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("brainmech: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,123 @@
+"""Weighted least-squares fits of a simulator's parameters to an observation table.
+
+z = (prediction - recording) / sigma, sigma the noise of each row; trust-region reflective
+least squares (scipy) with the simulator's Jacobian, within the bounds of the base
+parameters and of each effect (:mod:`diagnosis.effects`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+from scipy import optimize
+
+from brain_fe.parameters import Param
+from brain_fe.vocabulary import torque_mNmm
+from recordings.observations import peak_per_series
+from simulators.base import LastCall
+
+from .effects import library
+
+log = logging.getLogger(__name__)
+
+BASE_BOUNDS = {Param("mu", 0): (1e-3, 100.0), Param("alpha", 0): (-60.0, 60.0)}
+
+
+@dataclass
+class Fit:
+    effect: str
+    names: list[Param]
+    values: dict
+    chi2: float
+    n: int
+    prediction: np.ndarray
+    z: np.ndarray
+    nfev: int
+    stderr: dict = field(default_factory=dict)
+
+    @property
+    def k(self) -> int:
+        return len(self.names)
+
+    @property
+    def bic(self) -> float:
+        return self.chi2 + self.k * math.log(self.n)
+
+    @property
+    def aic(self) -> float:
+        return self.chi2 + 2 * self.k
+
+
+def _bounds(names, effect=None):
+    lo, hi = [], []
+    for n in names:
+        a, b = BASE_BOUNDS[n] if n in BASE_BOUNDS else effect.bounds(n)
+        lo.append(a)
+        hi.append(b)
+    return np.array(lo), np.array(hi)
+
+
+def fit(sim, obs: pd.DataFrame, sigma: np.ndarray, start: dict, names: list, *,
+        effect: str = "base", max_nfev: int = 20, effect_def=None) -> Fit:
+    """Trust-region least squares of z = (y(values) - value) / sigma over ``names``."""
+    names = [Param.parse(n) for n in names]
+    start = {Param.parse(k): v for k, v in start.items()}
+    if effect_def is None and effect != "base":
+        effect_def = library(sim.kind)[effect]
+    lo, hi = _bounds(names, effect_def)
+    x0 = np.clip([start[n] for n in names], lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    fixed = {k: v for k, v in start.items() if k not in names}
+    value = obs["value"].to_numpy(float)
+    pred = LastCall(sim)
+
+    def evaluate(x):
+        return pred({**fixed, **dict(zip(names, x, strict=True))}, names)
+
+    def fun(x):
+        return (evaluate(x).y - value) / sigma
+
+    def jac(x):
+        return evaluate(x).jacobian / sigma[:, None]
+
+    res = optimize.least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf",
+                                 x_scale="jac", max_nfev=max_nfev, xtol=1e-8, ftol=1e-8)
+    vals = {**fixed, **dict(zip(names, res.x, strict=True))}
+    p = evaluate(res.x)
+    z = (p.y - value) / sigma
+    stderr = {}
+    try:
+        Jw = p.jacobian / sigma[:, None]
+        cov = np.linalg.pinv(Jw.T @ Jw)
+        stderr = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
+    except np.linalg.LinAlgError:  # pragma: no cover
+        pass
+    return Fit(effect, list(names), vals, float(z @ z), len(z), p.y, z, int(res.nfev), stderr)
+
+
+def initial_guess(obs: pd.DataFrame) -> dict:
+    """mu from the small-strain slope of the torque-derived shear stress (tau = mu gamma)
+    or of the nominal stress (P = 3 mu (lambda - 1)); alpha = -10."""
+    mu = 1.0
+    tor = obs[(obs.channel == "torque") & (obs.control > 0)]
+    if len(tor):
+        g = tor.nsmallest(3, "control")
+        radius = obs.attrs.get("radius_mm", 4.0)
+        tau = g["value"].to_numpy() / torque_mNmm(1.0, radius)
+        mu = float(np.median(tau / g["control"].to_numpy()))
+    else:
+        st = obs[(obs.channel == "stress") & (np.abs(obs.control - 1) > 0)
+                 & ~obs.curve.str.contains("shear")]
+        if len(st):
+            g = st.loc[np.abs(st.control - 1).nsmallest(3).index]
+            mu = float(np.median(g["value"] / (3 * (g["control"] - 1))))
+    return {Param("mu", 0): float(np.clip(mu, 0.01, 50.0)), Param("alpha", 0): -10.0}
+
+
+def sigma_guess(obs: pd.DataFrame) -> np.ndarray:
+    """1 % of each series' peak: the weights of the first base fit."""
+    return np.maximum(0.01 * peak_per_series(obs), 1e-12)
+

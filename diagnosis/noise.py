@@ -1,0 +1,153 @@
+"""The noise of every series, estimated from the residual's second differences.
+
+For white noise of SD sigma the second differences ``d_i = r_{i-1} - 2 r_i + r_{i+1}``
+within a run have ``var d = 6 sigma^2``; a misfit that is smooth in recording order
+contributes only ``~ r''(t) dt^2``, so the estimate measures the noise, not the misfit.
+The effective degrees of freedom of each estimate (:func:`noise_dof`) are kept so that
+the tests of :mod:`diagnosis.locate` account for sigma being estimated.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pandas as pd
+
+from .series import as_float, check, groups, series_ids
+
+log = logging.getLogger(__name__)
+
+MAD_TO_SD = 1.4826  # 1 / Phi^{-1}(3/4): MAD of a normal sample -> its standard deviation
+MIN_SERIES = 5  # shorter series borrow the pooled estimate of their channel
+MIN_DIFFS = 3  # fewest second differences for a robust scale
+REWEIGHT_C = 3.0  # hard-rejection cut (in robust SDs) of the reweighting step
+# Effective degrees of freedom per second difference of the reweighted scale estimate:
+# var(s^2 / sigma^2) = 2 / nu with nu = DOF_PER_DIFF * n_d.  The d_i are MA(2)-correlated
+# (lag-1 and lag-2 correlations -2/3 and 1/6), so even the plain mean of d^2 has only
+# n_d / (1 + 2 (4/9 + 1/36)) = 0.51 n_d; calibrated by simulation (N = 20..120 points,
+# runs of 10..60) at 0.47-0.48.  The MAD alone would give 0.23 n_d.
+DOF_PER_DIFF = 0.47
+FLOOR_REL = 1e-12  # sigma floor, relative to the channel's peak |value|
+FLOOR_ABS = 1e-300
+_TRUNC_K = 1.0 - 2.0 * REWEIGHT_C * math.exp(-0.5 * REWEIGHT_C**2) / math.sqrt(2.0 * math.pi) \
+    / math.erf(REWEIGHT_C / math.sqrt(2.0))  # k(c) = 1 - 2 c phi(c) / (2 Phi(c) - 1)
+
+
+def _second_differences(r: np.ndarray, run_key: np.ndarray) -> np.ndarray:
+    """``d_i = r_{i-1} - 2 r_i + r_{i+1}`` within runs of equal ``run_key`` (consecutive rows
+    of one (branch, cycle)); runs are also cut at non-finite residuals, so the kinks of the
+    protocol's turning points never enter."""
+    n = r.size
+    if n < 3:
+        return np.empty(0)
+    ok = np.isfinite(r)
+    same = (run_key[1:] == run_key[:-1]) & ok[1:] & ok[:-1]  # pair (i, i+1) in one run
+    valid = same[:-1] & same[1:]  # triple (i, i+1, i+2) in one run
+    d = r[:-2] - 2.0 * r[1:-1] + r[2:]
+    return d[valid]
+
+
+def _robust_sd(d: np.ndarray) -> float:
+    """Noise SD from second differences, ``sigma = s_d / sqrt(6)``.
+
+    ``s0 = 1.4826 * median|d - median d|`` (MAD, robust to the few d that straddle a kink or
+    an outlier); then one reweighting step for efficiency (the MAD alone has 37 % Gaussian
+    efficiency): ``s_d^2 = sum_{|d - med| <= c s0} (d - med)^2 / (n_kept * k(c))`` with
+    ``c = 3`` and the truncated-normal consistency factor
+    ``k(c) = 1 - 2 c phi(c) / (2 Phi(c) - 1)``.  Returns NaN if it cannot be formed and 0
+    for identically flat differences (the caller floors it).
+    """
+    if d.size < MIN_DIFFS:
+        return math.nan
+    med = float(np.median(d))
+    dev = np.abs(d - med)
+    s0 = MAD_TO_SD * float(np.median(dev))
+    if s0 <= 0.0:  # more than half of the d tie: fall back to the plain SD of d
+        return float(np.sqrt(np.mean((d - med) ** 2)) / math.sqrt(6.0))
+    keep = dev <= REWEIGHT_C * s0
+    s = math.sqrt(float(np.sum(dev[keep] ** 2)) / (int(keep.sum()) * _TRUNC_K))
+    return s / math.sqrt(6.0)
+
+
+def _noise(obs: pd.DataFrame, residual) -> tuple[np.ndarray, np.ndarray]:
+    """(sigma, nu) per row; see :func:`estimate_noise` and :func:`noise_dof`."""
+    check(obs)
+    r = as_float(residual, "residual", len(obs))
+    n = len(obs)
+    sigma = np.full(n, np.nan)
+    nu = np.full(n, np.nan)
+    if n == 0:
+        return sigma, nu
+    value = obs["value"].to_numpy(dtype=float)
+    run_key = series_ids(obs, ("branch", "cycle"))
+    series = groups(obs)
+    diffs: dict[tuple, np.ndarray] = {}
+    for key, pos in series:
+        diffs[key] = _second_differences(r[pos], run_key[pos])
+    by_channel: dict[str, list[np.ndarray]] = {}
+    for key, d in diffs.items():
+        by_channel.setdefault(key[2], []).append(d)
+    pooled = {}
+    for ch, ds in by_channel.items():
+        d = np.concatenate(ds)
+        pooled[ch] = (_robust_sd(d), DOF_PER_DIFF * d.size)
+    channel = obs["channel"].to_numpy()
+    for key, pos in series:
+        rr = r[pos]
+        npts = int(np.isfinite(rr).sum())
+        d = diffs[key]
+        s = _robust_sd(d) if npts >= MIN_SERIES else math.nan
+        dof = DOF_PER_DIFF * d.size
+        if not math.isfinite(s):
+            s, dof = pooled[key[2]]
+            how = "pooled channel estimate"
+            if not math.isfinite(s):
+                fin = rr[np.isfinite(rr)]
+                s = float(np.sqrt(np.mean(fin**2))) if fin.size else math.nan
+                dof = float(fin.size)
+                how = "RMS of the residual"
+            log.debug("series %s: %d points, noise from the %s", key, npts, how)
+        peak = np.nanmax(np.abs(value[channel == key[2]]), initial=0.0)
+        floor = max(FLOOR_REL * (peak if math.isfinite(peak) else 0.0), FLOOR_ABS)
+        if not math.isfinite(s) or s < floor:
+            s = floor
+        sigma[pos] = s
+        nu[pos] = max(dof, 1.0)
+    return sigma, nu
+
+
+def estimate_noise(obs: pd.DataFrame, residual) -> np.ndarray:
+    """Noise standard deviation per row, one value per (specimen, curve, channel) series.
+
+    Within each run of consecutive rows with equal (branch, cycle) the second differences
+    ``d_i = r_{i-1} - 2 r_i + r_{i+1}`` are formed (never across a turning point of the
+    protocol).  For white noise of SD sigma, ``var d = (1 + 4 + 1) sigma^2 = 6 sigma^2``;
+    a misfit that is smooth in recording order contributes only ``~ r''(t) dt^2`` (zero
+    for a constant or linear misfit), so the estimate measures the noise, not the misfit::
+
+        s0 = 1.4826 * MAD(d)                      (robust start)
+        s_d^2 = mean_{|d - med| <= 3 s0} (d - med)^2 / k(3)     (one reweighting step)
+        sigma = s_d / sqrt(6)
+
+    ``k(c) = 1 - 2 c phi(c) / (2 Phi(c) - 1)`` makes the trimmed variance consistent.  The
+    relative standard error of sigma is about ``1 / sqrt(2 nu)`` with ``nu = 0.47 n_d``
+    (:func:`noise_dof`), i.e. 13-14 % for a 60-point series.
+
+    Guards: a series with fewer than 5 finite residuals (or fewer than 3 differences) takes
+    the pooled estimate over all second differences of its channel, failing that the RMS of
+    its residual; sigma is floored at ``1e-12 * max |value|`` of the channel, so it is never
+    0.  Residuals that are NaN stay NaN in ``z`` but do not break the estimate.
+    """
+    return _noise(obs, residual)[0]
+
+
+def noise_dof(obs: pd.DataFrame, residual) -> np.ndarray:
+    """Effective degrees of freedom ``nu`` of :func:`estimate_noise`'s sigma per row.
+
+    ``nu = 2 / var(sigma_hat^2 / sigma^2)``; ``0.47 n_d`` for a series estimate from ``n_d``
+    second differences (simulation-calibrated; see ``DOF_PER_DIFF``), the pooled count for a
+    pooled estimate, the number of points for the RMS fallback.
+    """
+    return _noise(obs, residual)[1]
