@@ -37,11 +37,7 @@ NEW = HERE.parent
 FORWARD = r"""
 import json, time, sys
 from brain_fe import geometry
-from brain_fe.model import ForwardModel
-try:
-    from brain_fe.materials import MaterialParameters
-except ImportError:
-    from brain_fe.model import MaterialParameters
+from brain_fe.model import ForwardModel, MaterialParameters  # both trees
 from brain_fe.protocols import compression_tension, torsion
 sens = sys.argv[1] == "1"
 m = ForwardModel(geometry.axisymmetric(refinement=2))

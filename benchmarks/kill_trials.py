@@ -1,0 +1,201 @@
+"""``kill -9`` at random moments of ``brainmech sample`` and of a batch ``brainmech diagnose``:
+nothing lost, nothing duplicated, at most one unit of work (per rank) repeated.
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/kill_trials.py [--trials 10]
+        [--ranks 2] [--seed 0] [--only sample|diagnose]
+
+Each trial starts the command (under ``mpirun -n RANKS``) on a fresh output, kills the whole
+process group with SIGKILL at a random moment (uniform between the first result on disk
+and the expected end of the run), then runs the same command again to completion and
+checks the output against a reference run that was never interrupted:
+
+* ``sample`` (n = 8, refinement 1): every (sample, test) stored exactly once, the values
+  equal the reference store bit for bit, and the second run computed at most as many
+  samples as the first had not finished plus one per rank;
+* ``diagnose`` (6 synthetic specimens, 1 cycle): every specimen's ``diagnosis.json``
+  present once with the reference verdict, and the second run diagnosed only the specimens
+  without a result (at most one per rank was in progress when killed).
+
+Prints one line per trial and a summary; writes ``benchmarks/results/kill_trials.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env.update(OPENBLAS_NUM_THREADS="1", OMPI_ALLOW_RUN_AS_ROOT="1",
+               OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1", OMPI_MCA_rmaps_base_oversubscribe="1",
+               PYTHONDONTWRITEBYTECODE="1")
+    return env
+
+
+def _cmd(ranks: int, args: list[str]) -> list[str]:
+    return ["mpirun", "-n", str(ranks), sys.executable, "-m", "brainmech", *args]
+
+
+def _run(cmd) -> subprocess.CompletedProcess:
+    return subprocess.run(cmd, env=_env(), capture_output=True, text=True, cwd=ROOT)
+
+
+def _kill_at(cmd, delay: float, ready) -> bool:
+    """Start ``cmd``, wait until ``ready()`` (first result on disk), then ``delay`` s more,
+    and SIGKILL the process group. True when the kill landed before the run ended."""
+    p = subprocess.Popen(cmd, env=_env(), cwd=ROOT, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        while not ready():
+            if p.poll() is not None:
+                return False
+            time.sleep(0.01)
+        end = time.monotonic() + delay
+        while time.monotonic() < end:
+            if p.poll() is not None:
+                return False
+            time.sleep(0.01)
+        os.killpg(p.pid, signal.SIGKILL)
+        return True
+    finally:
+        try:
+            os.killpg(p.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        p.wait()
+
+
+# ------------------------------------------------------------------------------ sample
+def sample_trials(trials: int, ranks: int, rng: random.Random, work: Path) -> list[dict]:
+    from brain_fe import store
+
+    args = ["sample", "--n", "8", "--seed", "3", "--refinement", "1",
+            "--tests", "compression_tension,torsion:0.30"]
+    ref = work / "sample-ref"
+    t0 = time.perf_counter()
+    r = _run(_cmd(ranks, args + ["--out", str(ref)]))
+    assert r.returncode == 0, r.stderr
+    duration = time.perf_counter() - t0
+    reference = store.load_samples(ref)
+    out = []
+    for k in range(trials):
+        d = work / f"sample-{k}"
+        delay = rng.uniform(0.0, duration)
+        killed = _kill_at(_cmd(ranks, args + ["--out", str(d)]), delay,
+                          lambda d=d: bool(store.chunk_files(d)))
+        before = store.summarize(d).done if (d / "manifest.json").exists() else 0
+        r = _run(_cmd(ranks, args + ["--out", str(d)]))
+        assert r.returncode == 0, r.stderr
+        computed = int(r.stdout.split("computed ")[1].split(" ")[0])
+        raw = store.read_chunks(d, with_file=True)
+        copies = raw.groupby(["sample", "test"]).chunk.nunique()
+        df = store.load_samples(d)
+        same = df.drop(columns="wall_time_s").equals(reference.drop(columns="wall_time_s"))
+        res = {"trial": k, "killed": killed, "delay_s": round(delay, 2),
+               "stored_before": before, "computed_after": computed,
+               "repeated": before + computed - 8, "all_once": bool((copies == 1).all())
+               and len(copies) == 16, "identical": bool(same)}
+        res["ok"] = res["all_once"] and res["identical"] and res["repeated"] <= ranks
+        out.append(res)
+        print("sample", res, flush=True)
+        shutil.rmtree(d)
+    return out
+
+
+# ------------------------------------------------------------------------------ diagnose
+def _diagnosis_data(work: Path, n: int) -> tuple[Path, Path]:
+    script = f"""
+import numpy as np, pandas as pd
+from diagnosis.benchmark import full_protocols, make_case
+rng = np.random.default_rng(5)
+recs, specs = [], []
+for i in range({n}):
+    effect = ["none", "viscoelastic", "artefacts"][i % 3]
+    rec, spec, case = make_case(i, effect, rng, refinement=1, truth_refinement=2,
+                                protocols=full_protocols(1, 0.05), models={{}})
+    recs.append(rec); specs.append(spec)
+pd.concat(recs).to_csv("{work}/rec.csv", index=False)
+pd.concat(specs).to_csv("{work}/spec.csv", index=False)
+"""
+    subprocess.run([sys.executable, "-c", script], env=_env(), cwd=ROOT, check=True,
+                   capture_output=True)
+    return work / "rec.csv", work / "spec.csv"
+
+
+def _verdicts(d: Path) -> dict:
+    out = {}
+    for p in sorted(d.glob("*/diagnosis.json")):
+        out[p.parent.name] = json.loads(p.read_text())["verdict"]
+    return out
+
+
+def diagnose_trials(trials: int, ranks: int, rng: random.Random, work: Path) -> list[dict]:
+    n = 6
+    rec, spec = _diagnosis_data(work, n)
+    args = ["diagnose", "--recordings", str(rec), "--specimens", str(spec)]
+    ref = work / "diag-ref"
+    t0 = time.perf_counter()
+    r = _run(_cmd(ranks, args + ["--out", str(ref)]))
+    assert r.returncode == 0, r.stderr
+    duration = time.perf_counter() - t0
+    reference = _verdicts(ref)
+    out = []
+    for k in range(trials):
+        d = work / f"diag-{k}"
+        delay = rng.uniform(0.0, duration)
+        killed = _kill_at(_cmd(ranks, args + ["--out", str(d)]), delay,
+                          lambda d=d: bool(_verdicts(d)))
+        before = len(_verdicts(d))
+        r = _run(_cmd(ranks, args + ["--out", str(d)]))
+        assert r.returncode == 0, r.stderr
+        done_now = r.stdout.count("diagnosed in this run")
+        verdicts = _verdicts(d)
+        res = {"trial": k, "killed": killed, "delay_s": round(delay, 2),
+               "done_before": before, "diagnosed_after": done_now,
+               "repeated": before + done_now - n, "complete": len(verdicts) == n,
+               "same_verdicts": verdicts == reference}
+        res["ok"] = res["complete"] and res["same_verdicts"] and res["repeated"] <= ranks
+        out.append(res)
+        print("diagnose", res, flush=True)
+        shutil.rmtree(d)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--trials", type=int, default=10)
+    ap.add_argument("--ranks", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--only", choices=["sample", "diagnose"], default=None)
+    a = ap.parse_args()
+    rng = random.Random(a.seed)
+    work = Path(tempfile.mkdtemp(prefix="kill-"))
+    results = {}
+    if a.only in (None, "sample"):
+        results["sample"] = sample_trials(a.trials, a.ranks, rng, work)
+    if a.only in (None, "diagnose"):
+        results["diagnose"] = diagnose_trials(a.trials, a.ranks, rng, work)
+    for k, rows in results.items():
+        print(f"{k}: {sum(r['ok'] for r in rows)}/{len(rows)} trials ok, "
+              f"{sum(r['killed'] for r in rows)} killed mid-run, max repeated "
+              f"{max(r['repeated'] for r in rows)}")
+    (HERE / "results").mkdir(exist_ok=True)
+    (HERE / "results" / "kill_trials.json").write_text(json.dumps(results, indent=1))
+    shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
