@@ -152,6 +152,12 @@ def staged_directory(final) -> Iterator[Path]:
     stage = Path(tempfile.mkdtemp(dir=final.parent, prefix=f".{final.name}.stage-"))
     try:
         yield stage
+    except (OSError, ValueError) as exc:  # name the user's path, never the stage
+        shutil.rmtree(stage, ignore_errors=True)
+        msg = str(exc)
+        if str(stage) not in msg:
+            raise
+        raise OutputError(msg.replace(str(stage), str(final))) from None
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise

@@ -60,6 +60,9 @@ def follow(protocol, steps, *, x, newton, set_control: Callable, set_dt: Callabl
         targets = []
     targets += [(s.time_s, s.value, preload, k) for k, s in enumerate(steps) if k > 0]
     for t_tg, q_tg, p_tg, k in targets:
+        if not all(np.isfinite((t_tg, q_tg, p_tg))):
+            raise ValueError(f"{protocol.test}: step {k} of the protocol is not a finite "
+                             f"(time, {protocol.control}) point: ({t_tg}, {q_tg})")
         step = steps[k]
         while not (np.isclose(q_cur, q_tg, rtol=0, atol=1e-14)
                    and np.isclose(p_cur, p_tg, rtol=0, atol=1e-14)

@@ -20,8 +20,16 @@ def _version() -> str:
         return "unknown"
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line usage errors (exit code 2): ``brainmech simulate: error:
+    argument --mu: expected a finite number, got 'nan'``; ``--help`` prints the usage."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="brainmech",
         description="Brain-tissue mechanics: FE model of glued cylinders, surrogates, "
         "identification, composition analysis and missing-physics diagnosis.")

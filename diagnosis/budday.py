@@ -5,11 +5,10 @@ the glued-end candidate (:mod:`simulators.glued_cube`)."""
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import numpy as np
 
-from brain_fe.io import write_json_atomic, write_text_atomic
+from brain_fe.io import staged_directory, write_json_atomic, write_text_atomic
 from recordings.budday import DATA_PATH, read_budday
 from simulators.glued_cube import GluedCubeSimulator
 from simulators.homogeneous import HomogeneousSimulator
@@ -25,22 +24,22 @@ log = logging.getLogger(__name__)
 def diagnose_budday(path: str | None, out: str, *, nu0: float = 0.49) -> dict:
     """One diagnosis per region, plus the one-term fit of each test alone."""
     obs_all = read_budday(path or DATA_PATH)
-    out = Path(out)
     results, by_test = {}, {}
-    for region, obs in obs_all.groupby("specimen", sort=False):
-        obs = obs.reset_index(drop=True)
-        sim = GluedCubeSimulator(obs, nu0=nu0)
-        d = diagnose(sim, obs)
-        results[region] = report.write(d, out / str(region),
-                                       title=f"Diagnosis of region {region} (Budday 2017)")
-        by_test[region] = _fits_by_test(obs, d, nu0)
-    summary = {r: {"verdict": v["verdict"], "one_term": v["base_parameters"],
-                   "one_term_by_test": by_test[r],
-                   "refit": v["refit_parameters"], "rms_before": v["rms_before"],
-                   "rms_after": v["rms_after"], "located": v["located"][:3]}
-               for r, v in results.items()}
-    write_json_atomic(out / "diagnosis.json", summary, indent=1)
-    write_text_atomic(out / "summary.md", _budday_table(summary))
+    with staged_directory(out) as stage:
+        for region, obs in obs_all.groupby("specimen", sort=False):
+            obs = obs.reset_index(drop=True)
+            sim = GluedCubeSimulator(obs, nu0=nu0)
+            d = diagnose(sim, obs)
+            results[region] = report.write(d, stage / str(region),
+                                           title=f"Diagnosis of region {region} (Budday 2017)")
+            by_test[region] = _fits_by_test(obs, d, nu0)
+        summary = {r: {"verdict": v["verdict"], "one_term": v["base_parameters"],
+                       "one_term_by_test": by_test[r],
+                       "refit": v["refit_parameters"], "rms_before": v["rms_before"],
+                       "rms_after": v["rms_after"], "located": v["located"][:3]}
+                   for r, v in results.items()}
+        write_json_atomic(stage / "diagnosis.json", summary, indent=1)
+        write_text_atomic(stage / "summary.md", _budday_table(summary))
     return summary
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from brain_fe.io import write_json_atomic, write_text_atomic
+from brain_fe.io import staged_directory, write_json_atomic, write_text_atomic
 
 from .effects import EFFECTS
 from .figures import before_after, mismatch_map
@@ -14,9 +14,13 @@ log = logging.getLogger(__name__)
 
 
 def write(d, out: str | Path, *, title: str = "diagnosis") -> dict:
-    """Write DIR/diagnosis.json, DIR/report.md, DIR/mismatch_map.png, DIR/before_after.png."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    """Write DIR/diagnosis.json, DIR/report.md, DIR/mismatch_map.png, DIR/before_after.png,
+    all at once (staged, then moved into place: a result is complete or absent)."""
+    with staged_directory(out) as stage:
+        return _write(d, stage, title)
+
+
+def _write(d, out: Path, title: str) -> dict:
     res = d.to_json()
     r = d.base.prediction - d.obs["value"].to_numpy(float)
     mismatch_map(d.obs, r, d.sigma, d.located, out / "mismatch_map.png")

@@ -16,13 +16,12 @@ sum_c a_c z_rc + N(0, sd); specimens scatter around their region.
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import pandas as pd
 
-from brain_fe.io import write_json_atomic
+from brain_fe.io import staged_directory, write_json_atomic
 from brain_fe.parallel import Progress
 
 log = logging.getLogger(__name__)
@@ -138,21 +137,21 @@ def make_brain_bank(out_dir: str, spec: BankSpec = BankSpec(), *,
     rec = pd.concat(parts, ignore_index=True)
     regions = pd.DataFrame({"specimen": list(spec.regions), "region": list(spec.regions),
                             "brain": "average", "radius_mm": 4.0, "height_mm": 5.0})
-    os.makedirs(out_dir, exist_ok=True)
-    files = {"specimens.csv": mech, "recordings.csv": rec, "composition.csv": comp,
-             "regions.csv": regions,
-             "recordings_regions.csv": region_average_curves(rec, mech)}
-    for name, df in files.items():
-        write_table_atomic(df, os.path.join(out_dir, name))
-    both = sorted(set(mech.specimen) & set(comp.specimen))
-    summary = {"synthetic": True, "generator": "recordings.brain_bank.make_brain_bank",
-               "command": f"brainmech make-brain-bank --seed {spec.seed} --out {out_dir}",
-               "spec": {k: v for k, v in asdict(spec).items()},
-               "counts": {"mechanics": len(mech), "composition": len(comp),
-                          "both": len(both), "regions": len(spec.regions)}}
-    truth_doc = {**summary, "region_truth": region_truth.to_dict("records"),
-                 "specimen_truth": truth.to_dict("records"),
-                 "composition_z": z.reset_index(names="region").to_dict("records")}
-    write_json_atomic(os.path.join(out_dir, "truth.json"), truth_doc, indent=1)
+    with staged_directory(out_dir) as stage:
+        files = {"specimens.csv": mech, "recordings.csv": rec, "composition.csv": comp,
+                 "regions.csv": regions,
+                 "recordings_regions.csv": region_average_curves(rec, mech)}
+        for name, df in files.items():
+            write_table_atomic(df, stage / name)
+        both = sorted(set(mech.specimen) & set(comp.specimen))
+        summary = {"synthetic": True, "generator": "recordings.brain_bank.make_brain_bank",
+                   "command": f"brainmech make-brain-bank --seed {spec.seed} --out {out_dir}",
+                   "spec": {k: v for k, v in asdict(spec).items()},
+                   "counts": {"mechanics": len(mech), "composition": len(comp),
+                              "both": len(both), "regions": len(spec.regions)}}
+        truth_doc = {**summary, "region_truth": region_truth.to_dict("records"),
+                     "specimen_truth": truth.to_dict("records"),
+                     "composition_z": z.reset_index(names="region").to_dict("records")}
+        write_json_atomic(stage / "truth.json", truth_doc, indent=1)
     log.info("virtual brain bank in %s: %s", out_dir, summary["counts"])
     return summary

@@ -55,3 +55,10 @@ FLOAT_COLUMNS = (TIME, STRETCH, SHEAR, NOMINAL_STRESS, TORQUE, AXIAL_FORCE)
 # The controlled value may exceed the series amplitude by this fraction of the amplitude
 # (round-off of a written file), not more.
 AMPLITUDE_RTOL = 1e-6
+# Physically meaningful data (recordings.tables._check_physics): a curve needs this many
+# points, and its ramps (runs of one cycle and branch) this many each (median), to tell
+# its shape from noise; specimens are mm-sized
+MIN_SERIES_POINTS = 5
+MIN_RAMP_POINTS = 3
+RADIUS_RANGE_MM = (0.1, 100.0)
+HEIGHT_RANGE_MM = (0.1, 200.0)

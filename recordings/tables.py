@@ -63,7 +63,16 @@ import numpy as np
 import pandas as pd
 
 from brain_fe.io import write_table_atomic as _write_table
-from brain_fe.vocabulary import TESTS, test_key
+from brain_fe.vocabulary import (
+    COMPRESSION_TENSION,
+    NOMINAL_STRESS,
+    SHEAR,
+    STRETCH,
+    TESTS,
+    TIME,
+    TORQUE,
+    test_key,
+)
 
 from .cells import (
     Raw,
@@ -84,6 +93,10 @@ from .schema import (
     AMPLITUDE_RTOL,
     BY_TEST,
     FLOAT_COLUMNS,
+    HEIGHT_RANGE_MM,
+    MIN_RAMP_POINTS,
+    MIN_SERIES_POINTS,
+    RADIUS_RANGE_MM,
     RECORDED_BRANCHES,
     RECORDING_COLUMNS,
     SPECIMEN_COLUMNS,
@@ -108,6 +121,12 @@ def read_specimens(path) -> pd.DataFrame:
     conv["brain"] = id_column(raw, "brain")
     conv["radius_mm"] = float_column(raw, "radius_mm", True, positive=True)
     conv["height_mm"] = float_column(raw, "height_mm", True, positive=True)
+    raw.raise_first()
+    for col, (lo, hi) in (("radius_mm", RADIUS_RANGE_MM), ("height_mm", HEIGHT_RANGE_MM)):
+        v = conv[col]
+        raw.add_first((v < lo) | (v > hi), col, lambda pos, v=v, col=col, lo=lo, hi=hi:
+                      f"{v[pos]:g} mm is not a plausible specimen {col.split('_')[0]} "
+                      f"(expected {lo:g}-{hi:g} mm; lengths are in mm)")
     raw.raise_first()
     ids = conv["specimen"]
     dup = ids.duplicated().to_numpy()
@@ -205,6 +224,9 @@ def read_recordings(path, specimens: pd.DataFrame | None = None,
     _check_specimens(raw, df, specimens, require_specimens)
     _check_series(raw, df)
     raw.raise_first()
+    _check_physics(raw, df)
+    raw.raise_first()
+    _warn_truncated(raw, df)
     log.debug("%s: %d rows, %d series, %d specimens", raw.path, len(df),
              df.groupby(["specimen", "test", "amplitude"], sort=False).ngroups,
              df["specimen"].nunique())
@@ -276,16 +298,76 @@ def _check_series(raw: Raw, df: pd.DataFrame) -> None:
                   f"and {raw.raw(int(first[p]), 'amplitude')} on {raw.row(int(first[p]))} "
                   f"both give specimen {df['specimen'].iloc[p]!r} the test {tkey.iloc[p]}; "
                   "use one amplitude per curve")
-    # warn about series far below their amplitude (no error: truncated recordings exist)
-    if not (ct_out.any() or to_out.any()):
-        dev = np.where(is_ct, np.abs(df["stretch"].to_numpy() - 1.0),
-                       np.abs(df["shear"].to_numpy()))
-        reach = pd.Series(dev, index=df.index).groupby(keys, sort=False).max()
-        for (sid, test, a), r in reach.items():
-            if r < 0.9 * a:
-                log.warning("%s: series (%s, %s, amplitude %g) reaches only %.4g of its "
-                            "amplitude (truncated recording, or a wrong amplitude?)",
-                            raw.path, sid, test, a, r)
+
+
+def _warn_truncated(raw: Raw, df: pd.DataFrame) -> None:
+    """Warn about series far below their amplitude (no error: truncated recordings exist)."""
+    keys = [df["specimen"], df["test"], df["amplitude"]]
+    is_ct = (df["test"] == COMPRESSION_TENSION).to_numpy()
+    dev = np.where(is_ct, np.abs(df[STRETCH].to_numpy() - 1.0), np.abs(df[SHEAR].to_numpy()))
+    reach = pd.Series(dev, index=df.index).groupby(keys, sort=False).max()
+    for (sid, test, a), r in reach.items():
+        if r < 0.9 * a:
+            log.warning("%s: series (%s, %s, amplitude %g) reaches only %.4g of its "
+                        "amplitude (truncated recording, or a wrong amplitude?)",
+                        raw.path, sid, test, a, r)
+
+
+def _check_physics(raw: Raw, df: pd.DataFrame) -> None:
+    """Physically degenerate series: no motion, no load, a clock that stands still, too few
+    points per ramp.  Such data cannot tell a model anything; refused with the first row of
+    the series."""
+    keys = [df["specimen"], df["test"], df["amplitude"]]
+    is_ct = (df["test"] == COMPRESSION_TENSION).to_numpy()
+    control = np.where(is_ct, df[STRETCH].to_numpy(float), df[SHEAR].to_numpy(float))
+    load = np.where(is_ct, df[NOMINAL_STRESS].to_numpy(float), df[TORQUE].to_numpy(float))
+    frame = pd.DataFrame({"control": control, "load": load, "time": df[TIME].to_numpy(float),
+                          "ramp": _ramp_ids(df)}, index=df.index)
+    g = frame.groupby(keys, sort=False)
+    first = pd.Series(np.arange(len(df)), index=df.index).groupby(keys, sort=False) \
+        .transform("first").to_numpy()
+    is_first = first == np.arange(len(df))
+
+    def name(p):
+        return (f"series ({df['specimen'].iloc[p]}, {df['test'].iloc[p]}, amplitude "
+                f"{raw.raw(p, 'amplitude')})")
+
+    def spread(col):
+        return (g[col].transform("max") - g[col].transform("min")).to_numpy()
+
+    size = g["control"].transform("size").to_numpy()
+    raw.add_first(is_first & (size < MIN_SERIES_POINTS), "specimen",
+                  lambda p: f"{name(p)} has only {size[p]} points; at least {MIN_SERIES_POINTS} "
+                  "are needed to fit a curve")
+    still = is_first & (spread("control") <= 1e-9 * df["amplitude"].to_numpy())
+    raw.add_first(still & is_ct, STRETCH, lambda p: f"{name(p)} never changes its stretch "
+                  f"({control[p]:g} throughout): nothing was tested")
+    raw.add_first(still & ~is_ct, SHEAR, lambda p: f"{name(p)} never changes its shear "
+                  f"({control[p]:g} throughout): nothing was tested")
+    flat = is_first & (spread("load") == 0)
+    col = np.where(is_ct, NOMINAL_STRESS, TORQUE)
+    for c in (NOMINAL_STRESS, TORQUE):
+        raw.add_first(flat & (col == c), c, lambda p, c=c: f"{c} is {load[p]:g} throughout "
+                      f"{name(p)}: no load was recorded")
+    frozen = is_first & (spread("time") == 0)
+    raw.add_first(frozen, TIME, lambda p: f"time does not advance in {name(p)} "
+                  f"({df[TIME].iloc[p]:g} s throughout)")
+    per_ramp = frame.groupby([*keys, frame["ramp"]], sort=False).size() \
+        .groupby(level=[0, 1, 2], sort=False).median()
+    sparse = pd.Series([per_ramp.loc[k] for k in zip(*keys, strict=True)],
+                       index=df.index).to_numpy()
+    for c, rows in ((STRETCH, is_ct), (SHEAR, ~is_ct)):
+        raw.add_first(is_first & rows & (sparse < MIN_RAMP_POINTS), c,
+                      lambda p: f"{name(p)} has {sparse[p]:g} points per ramp (median); at "
+                      f"least {MIN_RAMP_POINTS} are needed to tell the shape of a curve from "
+                      "its noise")
+
+
+def _ramp_ids(df: pd.DataFrame) -> np.ndarray:
+    """Per row, the number of its ramp: consecutive rows of one (cycle, branch) in file
+    order (a change of cycle or branch starts a new ramp)."""
+    bc = df["cycle"].astype(str) + "/" + df["branch"].astype(str)
+    return (bc != bc.shift()).cumsum().to_numpy()
 
 
 def _test_keys(df: pd.DataFrame) -> pd.Series:

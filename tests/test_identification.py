@@ -200,3 +200,25 @@ def test_identify_region_averaged_curves(synthetic, tiny_models, tmp_path):
     assert t.region.tolist() == ["Hippocampus"]
     assert t.mu_kPa.iloc[0] == pytest.approx(TRUTH[1][0], rel=0.02)
     assert t.alpha.iloc[0] == pytest.approx(TRUTH[1][1], rel=0.03)
+
+
+def test_identify_failing_late_leaves_no_output(synthetic, tiny_models, tmp_path,
+                                                monkeypatch):
+    """A failure after every fit and table (here the last figure) leaves nothing behind:
+    the outputs are staged and moved into place only when all succeeded (issue 18)."""
+    import identification.batch as batch
+    from recordings.tables import write_table as write_table_atomic
+
+    def broken(*args, **kw):
+        raise OSError("No space left on device")
+
+    spec, truth, rec = synthetic
+    write_table_atomic(spec.iloc[:1], str(tmp_path / "specimens.csv"))
+    write_table_atomic(rec[rec.specimen == "S0"], str(tmp_path / "rec.csv"))
+    monkeypatch.setattr(batch, "plot_history", broken)
+    out = tmp_path / "out"
+    with pytest.raises(OSError, match="No space left"):
+        batch.identify_all(str(tmp_path / "rec.csv"), str(tmp_path / "specimens.csv"),
+                           str(tiny_models[0]), str(out), refinement=1)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.csv", "specimens.csv"]
+

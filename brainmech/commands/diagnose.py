@@ -59,5 +59,6 @@ def run(args) -> int:
                               effects=args.effects, nu0=args.nu0, progress=True)
     if MPI.COMM_WORLD.rank == 0:
         say([f"{n}: verdict {r['verdict']}, RMS/noise {r['rms_before']:.2f} -> "
-             f"{r['rms_after']:.2f}" for n, r in res.items()] + [f"wrote {args.out}"])
+             f"{r['rms_after']:.2f} ({'reused' if r['reused'] else 'diagnosed in this run'})"
+             for n, r in res.items()] + [f"wrote {args.out}"])
     return 0
