@@ -36,7 +36,7 @@ from .ends import EndConditions, Interface, check_ends
 from .geometry import Geometry
 from .history import HistoryState, history_residual
 from .materials import MaterialModel, MaterialParameters
-from .parameters import K_R, K_THETA, Param, Parameters
+from .parameters import K_R, K_THETA, Direction, Param, Parameters
 from .protocols import Protocol, Step, plate_position
 from .response import Response
 from .sensitivities import DirectSensitivities, PathSensitivities
@@ -154,22 +154,28 @@ class ForwardModel:
         g = self.geometry
         self.ends.set_top(*plate_position(test, value, preload, g.height_mm, g.radius_mm))
 
-    def _sensitivity_params(self, sensitivities) -> tuple[list[Param], list[str]]:
-        """(model constants, artefact names) to differentiate for ``sensitivities``."""
+    def _sensitivity_params(self, sensitivities) -> tuple[list, list[str]]:
+        """([(key, Direction)] of the model constants, artefact names) to differentiate
+        for ``sensitivities`` (Params, their names, Directions, artefact names)."""
         if not sensitivities:
             return [], []
         if sensitivities is True:
-            return list(self.constants), []
-        names, params, arts = list(sensitivities), [], []
-        for n in names:
-            if str(n) in _art.NAMES:
+            return [(p, Direction.of(p)) for p in self.constants], []
+        requests, arts = [], []
+        for n in sensitivities:
+            if isinstance(n, Direction):
+                unknown = [str(p) for p, _ in n.weights if p not in self.constants]
+                if unknown:
+                    raise ValueError(f"direction {n}: this model has no {', '.join(unknown)}")
+                requests.append((n, n))
+            elif str(n) in _art.NAMES:
                 arts.append(str(n))
             elif Param.parse(n) in self.constants:
-                params.append(Param.parse(n))
+                requests.append((Param.parse(n), Direction.of(Param.parse(n))))
             else:
                 raise ValueError(f"no sensitivity for {n}; this model has "
                                  f"{', '.join(map(str, [*self.constants, *_art.NAMES]))}")
-        return params, arts
+        return requests, arts
 
     # ------------------------------------------------------------------ protocol
     def run(self, protocol: Protocol, params, **kw) -> pd.DataFrame:

@@ -118,3 +118,21 @@ class Parameters(Mapping[Param, float]):
         """Values of an indexed family in index order (``family("mu")`` -> [mu_0, mu_1])."""
         idx = sorted(k.index for k in self._d if k.family == name and k.index is not None)
         return [self._d[Param(name, i)] for i in idx]
+
+
+@dataclass(frozen=True)
+class Direction:
+    """A direction in parameter space: ``sum_p weight_p e_p``.  The derivative of the
+    outputs along it, d/ds y(theta + s w), is one sensitivity of the forward model, e.g.
+    d/d mu_0 with kappa following mu at fixed nu0 is
+    ``Direction("mu_0", ((mu(0), 1.0), (KAPPA, kappa / mu)))``."""
+
+    name: str
+    weights: tuple[tuple[Param, float], ...]
+
+    def __str__(self) -> str:
+        return self.name
+
+    @classmethod
+    def of(cls, p: Param) -> Direction:
+        return cls(str(p), ((p, 1.0),))

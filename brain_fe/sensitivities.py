@@ -23,7 +23,6 @@ from dolfinx import fem
 from petsc4py import PETSc
 
 from . import _compat
-from .parameters import Param
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +32,8 @@ FD_FLOOR = {"mu": 1e-2, "alpha": 1.0, "kappa": 1.0, "beta": 0.1, "tau": 1.0,
 
 
 def _ghost_forward(x) -> None:
-    x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+    if x.comm.size > 1:  # nothing to exchange on one rank
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
 
 
 def _ghost_reverse(x) -> None:
@@ -62,26 +62,41 @@ class DirectSensitivities:
         self._vecs = {p: fem_petsc.create_vector(f) for p, f in self._forms.items()}
         self._action = fem_petsc.create_vector(self._action_form)
         self._rhs = self._action.duplicate()
+        self._dir = self._action.duplicate()
         log.debug("compiled sensitivity forms in %.1f s", time.perf_counter() - t0)
 
-    def start(self, params: list[Param]) -> None:
+    def start(self, requests: list) -> None:
+        """``requests``: [(key, Direction)] of elastic constants."""
         self._compile()
-        self.params = params
+        for _, d in requests:
+            bad = [str(p) for p, _ in d.weights if p not in self._forms]
+            if bad:
+                raise ValueError(f"no direct sensitivity for {', '.join(bad)}")
+        self.requests = requests
 
-    def at_state(self, record: bool) -> dict[Param, tuple[float, float]]:
+    def at_state(self, record: bool) -> dict:
         if not record:
             return {}
         m = self.model
         m.newton.ensure_factorised()
         x = _compat.petsc_vec(m.u)
         zvec = _compat.petsc_vec(self._z)
+        assembled = {}
+        for _, d in self.requests:
+            for p, _ in d.weights:
+                if p not in assembled:
+                    v = self._vecs[p]
+                    with v.localForm() as vl:
+                        vl.set(0.0)
+                    fem_petsc.assemble_vector(v, self._forms[p])
+                    _ghost_reverse(v)
+                    assembled[p] = v
         out = {}
-        for p in self.params:
-            r = self._vecs[p]
-            with r.localForm() as rl:
-                rl.set(0.0)
-            fem_petsc.assemble_vector(r, self._forms[p])
-            _ghost_reverse(r)
+        for key, d in self.requests:
+            r = self._dir
+            r.set(0.0)
+            for p, w in d.weights:  # dR/ds along the direction
+                r.axpy(w, assembled[p])
             r.copy(self._rhs)
             self._rhs.scale(-1.0)
             _compat.set_bc(self._rhs, m.bcs, x, 0.0)
@@ -93,7 +108,7 @@ class DirectSensitivities:
             fem_petsc.assemble_vector(a, self._action_form)
             _ghost_reverse(a)
             a.axpy(1.0, r)
-            out[p] = m.ends.directional(a)
+            out[key] = m.ends.directional(a)
         return out
 
 
@@ -103,22 +118,25 @@ class PathSensitivities:
     def __init__(self, model):
         self.model = model
 
-    def start(self, params: list[Param]) -> None:
+    def start(self, requests: list) -> None:
+        """``requests``: [(key, Direction)]."""
         m = self.model
-        self.params = params
+        self.requests = requests
         x = _compat.petsc_vec(m.u)
-        self._z = {p: x.duplicate() for p in params}
+        self._z = {k: x.duplicate() for k, _ in requests}
         for z in self._z.values():
             z.set(0.0)
-        self._ds = ({p: np.zeros_like(m.state.array) for p in params} if m.state is not None
-                    else {})
+        self._ds = ({k: np.zeros_like(m.state.array) for k, _ in requests}
+                    if m.state is not None else {})
 
-    def _step(self, p: Param) -> float:
-        """Step of the central differences (relative 1e-6, floored per family)."""
-        return 1e-6 * max(abs(float(self.model.constants[p].value)),
-                          FD_FLOOR.get(p.family, 1e-3))
+    def _step(self, d) -> float:
+        """Step of the central differences along ``d``: a relative change of 1e-6 of its
+        most sensitive constant (floored per family)."""
+        c = self.model.constants
+        return 1e-6 * min(max(abs(float(c[p].value)), FD_FLOOR.get(p.family, 1e-3)) / abs(w)
+                          for p, w in d.weights if w != 0.0)
 
-    def at_state(self, record: bool) -> dict[Param, tuple[float, float]]:
+    def at_state(self, record: bool) -> dict:
         """Carry z and ds over a converged (sub)step; reaction derivatives if ``record``."""
         m = self.model
         m.newton.ensure_factorised()
@@ -128,19 +146,21 @@ class PathSensitivities:
         s0 = state.array.copy() if state is not None else None
         r_plus = x.duplicate()
         out, new_ds = {}, {}
-        theta0 = {p: float(m.constants[p].value) for p in self.params}
+        theta0 = {p: float(c.value) for p, c in m.constants.items()}
+        directions = dict(self.requests)
 
-        def perturb(p, h, with_u):
-            m.constants[p].value = theta0[p] + h
+        def perturb(key, h, with_u):
+            for p, w in directions[key].weights:
+                m.constants[p].value = theta0[p] + h * w
             if state is not None:
-                state.array[:] = s0 + h * self._ds[p]
+                state.array[:] = s0 + h * self._ds[key]
             if with_u:
                 u0.copy(x)
-                x.axpy(h, self._z[p])
+                x.axpy(h, self._z[key])
                 _ghost_forward(x)
 
-        for p in self.params:
-            eps = self._step(p)
+        for p, d in self.requests:
+            eps = self._step(d)
             # right-hand side: -(explicit + history) derivative of the residual at fixed u
             perturb(p, eps, False)
             m.newton.assemble_residual(with_bcs=False).copy(r_plus)

@@ -23,7 +23,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import math
 import time
 from dataclasses import dataclass
 
@@ -31,12 +33,14 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from brain_fe.parallel import SharedCounter, dynamic_items
 from simulators.coordinates import NU0
 
 from . import locate as loc
 from .effects import BASE_NAMES, check_effects, library, separating_test
 from .fitting import Fit, fit, initial_guess, sigma_guess
 from .noise import estimate_noise
+from .screen import data_scales, design, score
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +110,107 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     With ``comm`` (MPI) the candidate fits are shared among the ranks."""
     t0 = time.perf_counter()
     obs = obs.reset_index(drop=True)
+    with _sharing(sim, comm), _sharing(fine_sim, comm):  # the ranks share every curve
+        base, sigma, disc, J_base = _base(sim, fine_sim, obs, comm)
+    located = loc.locate(obs, base.prediction - obs["value"].to_numpy(float), sigma)
+    if progress:
+        progress("base")
+    names = list(BASE_NAMES)
+    lib = library(sim.kind)
+    check_effects(effects, sim.kind)
+    cands = list(effects or lib)
+
+    def share(items, work, cost):
+        """``work`` on the ``items``, most expensive first (by the estimated ``cost``),
+        each taken by whichever rank of ``comm`` is free; every rank gets every result,
+        in the order of ``items``."""
+        order = sorted(range(len(items)), key=lambda i: -cost(items[i]))
+        if comm is None or comm.size == 1:
+            done = [(i, work(items[i])) for i in order]
+        else:
+            counter = SharedCounter(comm)
+            done = [(i, work(items[i])) for i in dynamic_items(order, counter)]
+            counter.free()
+            done = [x for part in comm.allgather(done) for x in part]
+        return [r for _, r in sorted(done, key=lambda x: x[0])]
+
+    # score every candidate at the base fit; fit those that could earn their place
+    scales = data_scales(obs, base.values)
+    points = [(n, p) for n in cands for p in design(lib[n], sim.nu0, scales)]
+    scored = share(points, lambda it: _score_or_none(sim, obs, sigma, base, lib[it[0]],
+                                                     it[1], names, J_base),
+                   lambda it: HISTORY_COST if it[0] in HISTORY else 1.0)
+    best: dict = {}
+    for s in scored:
+        if s is not None and (s.effect not in best or s.lm > best[s.effect].lm):
+            best[s.effect] = s
+    n_obs, m = len(obs), max(len(cands), 1)
+    to_fit = [n for n in cands if n in best and best[n].lm >= SCREEN_FRACTION * _needed(
+        len(lib[n].names), n_obs, alpha / m, bic_margin)]
+    if progress:
+        progress(f"screened: fitting {', '.join(to_fit) or 'nothing'}")
+    results = share(to_fit, lambda name: _fit_or_none(sim, obs, sigma, best[name].start,
+                                                      names + list(lib[name].names), name,
+                                                      RANKING_NFEV, lib[name]),
+                    lambda name: best[name].seconds)
+    fits = {n: f for n, f in zip(to_fit, results, strict=True) if f is not None}
+    leader = min(fits.values(), key=lambda f: f.bic, default=None)
+    if leader is not None and not leader.converged:  # the winner's fit runs to the end
+        more = _fit_or_none(sim, obs, sigma, leader.values, leader.names, leader.effect,
+                            max_nfev, lib[leader.effect])
+        if more is not None and more.chi2 <= leader.chi2:
+            fits[leader.effect] = more
+    ranking = []
+    for name, f in fits.items():
+        dchi2 = base.chi2 - f.chi2
+        p = float(stats.chi2.sf(max(dchi2, 0.0), f.k - base.k))
+        ranking.append({"effect": name, "bic": f.bic, "delta_bic": f.bic - base.bic,
+                        "aic": f.aic, "chi2": f.chi2, "lrt": dchi2, "p_value": p,
+                        "significant": bool(p < alpha / m and base.bic - f.bic > bic_margin),
+                        "parameters": _plain({n: f.values[n] for n in lib[name].names}),
+                        "stderr": _plain({n: f.stderr.get(n, float("nan"))
+                                          for n in lib[name].names}),
+                        "score": best[name].lm})
+    for name in cands:
+        if name not in fits:
+            s = best.get(name)
+            ranking.append({"effect": name, "bic": float("nan"), "delta_bic": float("nan"),
+                            "aic": float("nan"), "chi2": float("nan"), "lrt": float("nan"),
+                            "p_value": float("nan"), "significant": False,
+                            "parameters": {}, "stderr": {},
+                            "score": s.lm if s is not None else float("nan"),
+                            "screened_out": True})
+    ranking.sort(key=lambda r: (math.isnan(r["bic"]), r["bic"], -r["score"]))
+    significant = [r for r in ranking if r["significant"]]
+    verdict = significant[0]["effect"] if significant else "none"
+    ambiguous = []
+    if significant:
+        for r in significant[1:]:
+            if r["bic"] - significant[0]["bic"] < bic_margin:
+                ambiguous.append({"effects": [verdict, r["effect"]],
+                                  "delta_bic": r["bic"] - significant[0]["bic"],
+                                  "separating_test": separating_test(verdict, r["effect"])})
+    for a in ambiguous:
+        log.warning("%s and %s cannot be told apart with these tests (dBIC %.1f); %s",
+                    *a["effects"], a["delta_bic"], a["separating_test"])
+    return Diagnosis(base, fits, sigma, located, verdict, ranking, ambiguous, disc,
+                     time.perf_counter() - t0, obs)
+
+
+SCREEN_FRACTION = 0.25  # fit a candidate whose score reaches this share of what it needs
+# Effects that follow the recorded path (history) cost about this many elastic evaluations
+HISTORY = ("viscoelastic", "mullins")
+HISTORY_COST = 4.0
+RANKING_NFEV = 8  # evaluations of a competitor's fit (the leader's fit is then completed)
+
+
+def _needed(k: int, n: int, p: float, bic_margin: float) -> float:
+    """The chi-square reduction an effect with k parameters needs to be significant."""
+    return max(float(stats.chi2.isf(p, k)), k * math.log(n) + bic_margin)
+
+
+def _base(sim, fine_sim, obs, comm):
+    """Base fit, discretisation correction, noise estimate, refit and the base Jacobian."""
     names = list(BASE_NAMES)
     sigma = sigma_guess(obs)
     base = fit(sim, obs, sigma, {**initial_guess(obs), NU0: sim.nu0}, names, max_nfev=40)
@@ -123,63 +228,32 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         rel = np.abs(sim.correction) / sigma
         disc.update(max_over_noise=float(rel.max()), rms_over_noise=float(
             np.sqrt(np.mean(rel**2))))
-    located = loc.locate(obs, base.prediction - obs["value"].to_numpy(float), sigma)
-    if progress:
-        progress("base")
-    lib = library(sim.kind)
-    check_effects(effects, sim.kind)
-    cands = list(effects or lib)
-    rank, size = (comm.rank, comm.size) if comm is not None else (0, 1)
-    mine = {}
-    for i, name in enumerate(cands):
-        if i % size != rank:
-            continue
-        e = lib[name]
-        best = None
-        for s in e.starts:
-            start = {**base.values, **s}
-            if name == "compressibility":
-                start[NU0] = min(sim.nu0 - 0.04, s[NU0])
-            try:
-                f = fit(sim, obs, sigma, start, names + list(e.names), effect=name,
-                        max_nfev=max_nfev, effect_def=e)
-            except Exception as exc:  # a failed candidate is reported, not fatal
-                log.warning("candidate %s from %s failed: %s", name, s, exc)
-                continue
-            if best is None or f.chi2 < best.chi2:
-                best = f
-        if best is not None:
-            mine[name] = best
-        if progress:
-            progress(name)
-    fits = mine
-    if comm is not None and size > 1:
-        fits = {}
-        for part in comm.allgather(mine):
-            fits.update(part)
-    ranking = []
-    m = max(len(cands), 1)
-    for name, f in fits.items():
-        dchi2 = base.chi2 - f.chi2
-        p = float(stats.chi2.sf(max(dchi2, 0.0), f.k - base.k))
-        ranking.append({"effect": name, "bic": f.bic, "delta_bic": f.bic - base.bic,
-                        "aic": f.aic, "chi2": f.chi2, "lrt": dchi2, "p_value": p,
-                        "significant": bool(p < alpha / m and base.bic - f.bic > bic_margin),
-                        "parameters": _plain({n: f.values[n] for n in lib[name].names}),
-                        "stderr": _plain({n: f.stderr.get(n, float("nan"))
-                                          for n in lib[name].names})})
-    ranking.sort(key=lambda r: r["bic"])
-    significant = [r for r in ranking if r["significant"]]
-    verdict = significant[0]["effect"] if significant else "none"
-    ambiguous = []
-    if significant:
-        for r in significant[1:]:
-            if r["bic"] - significant[0]["bic"] < bic_margin:
-                ambiguous.append({"effects": [verdict, r["effect"]],
-                                  "delta_bic": r["bic"] - significant[0]["bic"],
-                                  "separating_test": separating_test(verdict, r["effect"])})
-    for a in ambiguous:
-        log.warning("%s and %s cannot be told apart with these tests (dBIC %.1f); %s",
-                    *a["effects"], a["delta_bic"], a["separating_test"])
-    return Diagnosis(base, fits, sigma, located, verdict, ranking, ambiguous, disc,
-                     time.perf_counter() - t0, obs)
+    return base, sigma, disc, sim.predict(base.values, names).jacobian
+
+
+@contextlib.contextmanager
+def _sharing(sim, comm):
+    """Let the ranks of ``comm`` share the curves of ``sim``'s predictions, where the
+    simulator can (the FE model); otherwise every rank computes everything."""
+    if sim is None or not hasattr(sim, "sharing"):
+        yield sim
+        return
+    with sim.sharing(comm):
+        yield sim
+
+
+def _score_or_none(sim, obs, sigma, current, effect, point, names, J_base):
+    try:
+        return score(sim, obs, sigma, current, effect, point, names, J_base)
+    except Exception as exc:  # a model that cannot be solved there scores nothing
+        log.warning("score of %s at %s failed: %s", effect.name, point, exc)
+        return None
+
+
+def _fit_or_none(sim, obs, sigma, start, names, effect, max_nfev, effect_def):
+    try:
+        return fit(sim, obs, sigma, start, names, effect=effect, max_nfev=max_nfev,
+                   effect_def=effect_def)
+    except Exception as exc:  # a failed candidate is reported, not fatal
+        log.warning("candidate %s failed: %s", effect, exc)
+        return None

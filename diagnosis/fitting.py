@@ -38,6 +38,7 @@ class Fit:
     z: np.ndarray
     nfev: int
     stderr: dict = field(default_factory=dict)
+    converged: bool = True  # False when the evaluation budget ended the fit
 
     @property
     def k(self) -> int:
@@ -95,7 +96,8 @@ def fit(sim, obs: pd.DataFrame, sigma: np.ndarray, start: dict, names: list, *,
         stderr = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
     except np.linalg.LinAlgError:  # pragma: no cover
         pass
-    return Fit(effect, list(names), vals, float(z @ z), len(z), p.y, z, int(res.nfev), stderr)
+    return Fit(effect, list(names), vals, float(z @ z), len(z), p.y, z, int(res.nfev), stderr,
+               converged=res.status > 0)
 
 
 def initial_guess(obs: pd.DataFrame) -> dict:

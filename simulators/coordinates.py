@@ -14,8 +14,9 @@ and the artefacts ``stretch_offset``, ``force_offset``, ``torque_offset``, ``hei
 
 :func:`model_point` turns coordinate values into what the forward model takes (material
 values, glue interface, artefacts, and the physics the model must be compiled with);
-:func:`chain` turns the model's sensitivities into the Jacobian in coordinates.  A new
-effect whose parameters are model parameters needs nothing here.
+:func:`directions` gives, per coordinate, the direction in the model's parameter space the
+model differentiates along (the columns of d theta / d q).  A new effect whose parameters
+are model parameters needs nothing here.
 """
 
 from __future__ import annotations
@@ -23,8 +24,6 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-
-import numpy as np
 
 from brain_fe.artefacts import NAMES as ARTEFACT_NAMES
 from brain_fe.artefacts import Artefacts
@@ -36,6 +35,7 @@ from brain_fe.parameters import (
     KAPPA,
     SOFTENING,
     SOFTENING_M,
+    Direction,
     Param,
     Parameters,
     mu,
@@ -110,41 +110,29 @@ def model_point(values: Mapping[Param, float], nu0: float) -> ModelPoint:
                               tuple(sorted(set(laws)))))
 
 
-def model_sensitivities(wrt: Sequence[Param]) -> list[Param]:
-    """The model parameters (and artefact names) whose sensitivities ``wrt`` needs."""
-    out: list[Param] = []
-    for q in wrt:
-        if q.family == "mu":
-            out += [q, KAPPA]
-        elif q == NU0:
-            out.append(KAPPA)
-        elif q == LOG10_K:
-            out += [K_R, K_THETA]
-        else:
-            out.append(_log10_target(q) or q)
-    return list(dict.fromkeys(out))
-
-
-def chain(values: Mapping[Param, float], point: ModelPoint, wrt: Sequence[Param],
-          d: Mapping[Param, np.ndarray], n: int) -> np.ndarray:
-    """Jacobian (n, len(wrt)) in coordinates from the model sensitivities ``d[param]``
-    (partial derivatives, kappa held fixed in d/d mu_p)."""
+def directions(values: Mapping[Param, float], point: ModelPoint,
+               wrt: Sequence[Param]) -> list:
+    """What the forward model differentiates for each coordinate of ``wrt``: the direction
+    d theta / d q in its parameter space (a :class:`~brain_fe.parameters.Direction`), or the
+    artefact name.  So every coordinate costs one sensitivity, and the model returns the
+    Jacobian in coordinates directly."""
     mat = point.material
-    J = np.zeros((n, len(wrt)))
     mu_total = sum(mat.family("mu"))
-    nu = values.get(NU0)
-    for j, q in enumerate(wrt):
-        if q.family == "mu":
-            J[:, j] = d[q]
-            if KAPPA not in values:  # kappa follows mu at fixed nu0
-                J[:, j] += (mat[KAPPA] / mu_total) * d[KAPPA]
+    out = []
+    for q in wrt:
+        if q in ARTEFACTS:
+            out.append(str(q))
+        elif q.family == "mu" and KAPPA not in values:  # kappa follows mu at fixed nu0
+            out.append(Direction(str(q), ((q, 1.0), (KAPPA, mat[KAPPA] / mu_total))))
         elif q == NU0:
-            J[:, j] = 2 * mu_total / (1 - 2 * nu) ** 2 * d[KAPPA]
+            nu = values[NU0]
+            out.append(Direction(str(q), ((KAPPA, 2 * mu_total / (1 - 2 * nu) ** 2),)))
         elif q == LOG10_K:
-            J[:, j] = LN10 * point.interface.k_r_kPa_mm * (d[K_R] + d[K_THETA])
+            k = point.interface.k_r_kPa_mm
+            out.append(Direction(str(q), ((K_R, LN10 * k), (K_THETA, LN10 * k))))
         elif _log10_target(q) is not None:
             t = _log10_target(q)
-            J[:, j] = LN10 * mat[t] * d[t]
+            out.append(Direction(str(q), ((t, LN10 * mat[t]),)))
         else:
-            J[:, j] = d[q]
-    return J
+            out.append(Direction.of(q))
+    return out

@@ -453,7 +453,7 @@ def test_axial_fibres_slip_against_homogeneous_reference():
                         "branch": [s.branch for s in steps], "cycle": 1,
                         "control": [s.value for s in steps], "time_s": [s.time_s for s in steps],
                         "value": 0.0})
-    sim = FESimulator(obs, 4.0, 5.0, geometry=g, ends="slip")
+    sim = FESimulator(obs, 4.0, 5.0, geometry=g, ends="slip", path="recorded")
     y = sim.predict({"mu_0": MU, "alpha_0": ALPHA, "kappa": KAPPA, "fibre_k1": 2.0,
                      "fibre_k2": 5.0}).y
     np.testing.assert_allclose(y, df.nominal_stress_kPa, rtol=1e-12, atol=1e-14)
