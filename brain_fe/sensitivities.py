@@ -144,7 +144,6 @@ class PathSensitivities:
         u0 = x.copy()
         state = m.state
         s0 = state.array.copy() if state is not None else None
-        r_plus = x.duplicate()
         out, new_ds = {}, {}
         theta0 = {p: float(c.value) for p, c in m.constants.items()}
         directions = dict(self.requests)
@@ -159,32 +158,31 @@ class PathSensitivities:
                 x.axpy(h, self._z[key])
                 _ghost_forward(x)
 
+        # one-sided differences from the converged state (its residual, reactions and
+        # state update are shared by every direction): 2 assemblies and 1 state update per
+        # direction instead of 4 and 2; truncation error ~ the relative step, 1e-6
+        r0 = m.newton.assemble_residual(with_bcs=False).copy()
+        f0 = np.array(m.ends.reactions(r0, m.comm)) if record else None
+        g0 = state.evaluate() if state is not None else None
         for p, d in self.requests:
             eps = self._step(d)
             # right-hand side: -(explicit + history) derivative of the residual at fixed u
             perturb(p, eps, False)
-            m.newton.assemble_residual(with_bcs=False).copy(r_plus)
-            perturb(p, -eps, False)
             rhs = m.newton.assemble_residual(with_bcs=False).copy()
-            rhs.axpy(-1.0, r_plus)
-            rhs.scale(1.0 / (2 * eps))
+            rhs.axpy(-1.0, r0)
+            rhs.scale(-1.0 / eps)
             perturb(p, 0.0, True)
             _compat.set_bc(rhs, m.bcs, x, 0.0)
             z = self._z[p]
             m.newton.ksp.solve(rhs, z)
             _ghost_forward(z)
-            if record:
+            if record or state is not None:
                 perturb(p, eps, True)
-                fp = np.array(m.reactions())
-                perturb(p, -eps, True)
-                fm = np.array(m.reactions())
-                out[p] = tuple((fp - fm) / (2 * eps))
-            if state is not None:
-                perturb(p, eps, True)
-                gp = state.evaluate()
-                perturb(p, -eps, True)
-                gm = state.evaluate()
-                new_ds[p] = state.scatter((gp - gm) / (2 * eps), np.empty_like(s0))
+                if record:
+                    out[p] = tuple((np.array(m.reactions()) - f0) / eps)
+                if state is not None:
+                    new_ds[p] = state.scatter((state.evaluate() - g0) / eps,
+                                              np.empty_like(s0))
             perturb(p, 0.0, True)
         self._ds.update(new_ds)
         return out

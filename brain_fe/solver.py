@@ -33,7 +33,8 @@ def _direct_solver_type(comm) -> str:
 
 
 class NewtonSolver:
-    """Full Newton for F(u; v) = 0 with Dirichlet conditions ``bcs`` applied by lifting.
+    """Newton for F(u; v) = 0 with Dirichlet conditions ``bcs`` applied by lifting, reusing
+    a factorisation while it contracts (``reuse``; see :meth:`solve`).
 
     Converged when the free-dof residual norm drops below ``atol`` (a force, mN) or below
     ``rtol`` times the first residual of the step. The Jacobian is factorised by LU
@@ -42,13 +43,15 @@ class NewtonSolver:
     """
 
     def __init__(self, comm, residual_form, jacobian_form, u, bcs, *, atol: float = 1e-10,
-                 rtol: float = 1e-10, max_iterations: int = 15):
+                 rtol: float = 1e-10, max_iterations: int = 15, reuse: bool = True,
+                 contraction: float = 0.1):
         self.comm = comm
         self.L = residual_form
         self.a = jacobian_form
         self.u = u
         self.bcs = bcs
         self.atol, self.rtol, self.max_iterations = atol, rtol, max_iterations
+        self.reuse, self.contraction = reuse, contraction
         self.A = fem_petsc.create_matrix(jacobian_form)
         self.b = fem_petsc.create_vector(residual_form)
         self.du = self.b.duplicate()
@@ -58,16 +61,19 @@ class NewtonSolver:
         pc.setType("lu")
         pc.setFactorSolverType(_direct_solver_type(comm))
         self.ksp.setOperators(self.A)
-        self._factorised_state = -1  # id of the state the factorisation belongs to
-        self._state = 0
+        self._factorised = (-1, 0)  # (solve, iteration) the factorisation was made at
+        self._state = self._iteration = 0
+        self.factorisations = 0
 
-    def assemble_residual(self, *, with_bcs: bool = True):
-        """Residual vector; with ``with_bcs`` the Dirichlet rows hold -(g - u)."""
+    def assemble_residual(self, *, with_bcs: bool = True, lift: bool = True):
+        """Residual vector; with ``with_bcs`` the Dirichlet rows hold -(g - u).  ``lift``:
+        add the Jacobian's action on the Dirichlet change (needed only while u does not
+        hold the Dirichlet values; a Newton update from such a residual sets them)."""
         x = _compat.petsc_vec(self.u)
         with self.b.localForm() as bl:
             bl.set(0.0)
         fem_petsc.assemble_vector(self.b, self.L)
-        if with_bcs:
+        if with_bcs and lift:
             _compat.apply_lifting(self.b, self.a, self.bcs, x, -1.0)
         self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         if with_bcs:
@@ -81,25 +87,42 @@ class NewtonSolver:
         self.A.assemble()
         self.ksp.setOperators(self.A)
         self.ksp.setUp()
-        self._factorised_state = self._state
+        self._factorised = (self._state, self._iteration)
+        self.factorisations += 1
 
     def ensure_factorised(self) -> None:
         """Make the factorisation belong to the current (converged) state.
 
-        After convergence the last factorisation is one Newton update old; with quadratic
-        convergence that update is below 1e-8 of u, so it is reused unless the step
-        converged without any iteration (then the factorisation is a step old)."""
-        if self._factorised_state != self._state:
+        A factorisation made at the last or the last-but-one iterate of the converged
+        solve is kept (the last update of a converged Newton solve is below 1e-8 of u);
+        an older one (the chord steps reuse it) is renewed."""
+        state, it = self._factorised
+        if state != self._state or it < self._iteration - 1:
             self.factorise()
 
     def solve(self) -> NewtonReport:
+        """Newton's method that reuses the last factorisation (from an earlier iterate or
+        load step) while it contracts the residual at least ``contraction`` times per
+        iteration, and factorises afresh otherwise: in small load steps the tangent
+        barely changes, and assembling it costs ~10 residuals.  A step made with an old
+        factorisation that does not reduce the residual is undone and made again with a
+        fresh one, so the iteration never does worse than full Newton."""
         self._state += 1
         x = _compat.petsc_vec(self.u)
         rep = NewtonReport(False, 0)
-        r0 = None
+        r0 = prev = None
+        stale_step = False  # the last update was made with an old factorisation
         for it in range(self.max_iterations + 1):
-            b = self.assemble_residual()
+            self._iteration = it
+            # after the first update u holds the Dirichlet values: no lifting from then on
+            b = self.assemble_residual(lift=it == 0)
             rnorm = b.norm()
+            redo = stale_step and not (rnorm < prev)  # also when rnorm is not finite
+            if redo:  # undo the update, factorise at the iterate it was made from
+                x.axpy(1.0, self.du)
+                x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+                b = self.assemble_residual(lift=it == 1)
+                rnorm = b.norm()
             rep.residuals.append(rnorm)
             if not np.isfinite(rnorm):
                 rep.reason = "residual is not finite"
@@ -111,7 +134,12 @@ class NewtonSolver:
                 return rep
             if it == self.max_iterations:
                 break
-            self.factorise()
+            fresh = (redo or self._factorised[0] < 0 or not self.reuse
+                     or (prev is not None and rnorm > self.contraction * prev))
+            if fresh:
+                self.factorise()
+            stale_step = not fresh and self._factorised != (self._state, it)
+            prev = rnorm
             self.ksp.solve(b, self.du)
             if self.ksp.getConvergedReason() < 0:
                 rep.reason = f"linear solver failed ({self.ksp.getConvergedReason()})"

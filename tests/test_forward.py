@@ -53,16 +53,43 @@ def _quadratic_constants(res, scale):
 def test_newton_quadratic_through_reference_and_unloading(axi_glued):
     """Quadratic convergence in compression, on unloading through lambda = 1, in tension
     and in torsion: rho_{k+1} <= 100 rho_k^2 for every iteration of the default protocols,
-    at most 5 iterations per step (the bound 100 is far below linear behaviour)."""
+    at most 5 iterations per step (the bound 100 is far below linear behaviour).  Full
+    Newton (a fresh tangent every iteration): this checks that the tangent is consistent."""
     from brain_fe.protocols import compression_tension, torsion
 
+    axi_glued.newton.reuse = False
+    try:
+        for prot in (compression_tension(0.15), torsion(0.30)):
+            axi_glued.run(prot, _params(nu0=0.49, kappa=None))
+            consts = [c for _, res in axi_glued.newton_log
+                      for c in _quadratic_constants(res, math.pi * 16)]
+            assert max(len(res) - 1 for _, res in axi_glued.newton_log) <= 5
+            assert len(consts) >= 20
+            assert max(consts) < 100.0  # linear convergence would give ~1e6 at rho ~ 1e-8
+    finally:
+        axi_glued.newton.reuse = True
+
+
+def test_reused_factorisations_change_nothing(axi_glued):
+    """Newton reusing its factorisation across iterations and load steps (the default)
+    reaches the same states as full Newton (to 1e-9 of the peak, both converged to 1e-10
+    of the first residual) with at most half the factorisations."""
+    from brain_fe.protocols import compression_tension, torsion
+
+    p = _params(nu0=0.49, kappa=None)
     for prot in (compression_tension(0.15), torsion(0.30)):
-        axi_glued.run(prot, _params(nu0=0.49, kappa=None))
-        consts = [c for _, res in axi_glued.newton_log
-                  for c in _quadratic_constants(res, math.pi * 16)]
-        assert max(len(res) - 1 for _, res in axi_glued.newton_log) <= 5
-        assert len(consts) >= 20
-        assert max(consts) < 100.0  # linear convergence would give ~1e6 at rho ~ 1e-8
+        runs, counts = [], []
+        for reuse in (False, True):
+            axi_glued.newton.reuse = reuse
+            n0 = axi_glued.newton.factorisations
+            runs.append(axi_glued.run(prot, p))
+            counts.append(axi_glued.newton.factorisations - n0)
+        axi_glued.newton.reuse = True
+        for col in ("nominal_stress_kPa", "torque_mNmm", "axial_force_mN"):
+            if col in runs[0]:
+                a, b = runs[0][col].to_numpy(), runs[1][col].to_numpy()
+                assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
+        assert counts[1] <= counts[0] / 2
 
 
 def test_unloading_returns_to_the_loading_curve(axi_glued):
