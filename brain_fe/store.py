@@ -168,6 +168,9 @@ def write_chunk(store, rows: list[dict], *, run_id: str, rank: int, seq) -> Path
     import pyarrow.parquet as pq
 
     d = Path(store) / "chunks"
+    # A missing text (pandas >= 3 reads it back as NaN) is stored as a null string.
+    rows = [{**r, **{c: None for c in _STR if isinstance(r.get(c), float) and r[c] != r[c]}}
+            for r in rows]
     table = pa.Table.from_pylist(rows, schema=_arrow_schema())
     meta = {"run_id": run_id, "rank": rank, "seq": seq, "software": software_versions()}
     table = table.replace_schema_metadata({b"brainmech": json.dumps(meta).encode()})

@@ -241,6 +241,8 @@ def _parse_parquet(path: str, data: bytes) -> Raw:
 # ------------------------------------------------------------------------------ cells
 def _is_text(s: pd.Series) -> bool:
     """Every non-null cell is a string (all CSV columns; Parquet string columns)."""
+    if isinstance(s.dtype, pd.StringDtype):  # pandas >= 3 reads text as ``str``
+        return True
     return s.dtype == object and pd.api.types.infer_dtype(s, skipna=True) in ("string", "empty")
 
 
