@@ -97,3 +97,22 @@ def accept_negative_lists(p: argparse.ArgumentParser) -> None:
     ``--alpha-range -40,-2``); argparse otherwise only recognises single negative numbers
     and takes ``-25,5`` for an option."""
     p._negative_number_matcher = re.compile(r"^-\.?\d[\d.,eE+-]*$")
+
+
+def channel_noise(text: str) -> dict[str, float]:
+    """``stress=0.01,torque=0.02,axial_force=0.5``: a stated noise SD per channel, in the
+    channel's unit (kPa, mN mm, mN)."""
+    from brain_fe.vocabulary import CHANNELS
+
+    out = {}
+    for item in (t.strip() for t in text.split(",") if t.strip()):
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or name not in CHANNELS:
+            raise argparse.ArgumentTypeError(
+                f"expected CHANNEL=SD with CHANNEL one of {', '.join(CHANNELS)}, got {item!r}")
+        v = positive(value)
+        out[name] = v
+    if not out:
+        raise argparse.ArgumentTypeError("expected at least one CHANNEL=SD")
+    return out

@@ -32,7 +32,7 @@ from .engine import diagnose
 log = logging.getLogger(__name__)
 
 
-def _diagnose_one(name, rec, specs, target: Path, *, refinement, effects, nu0, comm,
+def _diagnose_one(name, rec, specs, target: Path, *, refinement, effects, nu0, noise, comm,
                   progress) -> dict:
     row = specs.set_index("specimen").loc[name]
     obs = observations(rec[rec.specimen == name])
@@ -41,7 +41,7 @@ def _diagnose_one(name, rec, specs, target: Path, *, refinement, effects, nu0, c
     sim = FESimulator(obs, R, H, refinement=refinement, nu0=nu0)
     fine = FESimulator(obs, R, H, refinement=refinement + 1, nu0=nu0)
     with as_progress(progress, None, f"diagnose {name}", "fit", comm) as bar:
-        d = diagnose(sim, obs, fine_sim=fine, effects=effects, comm=comm,
+        d = diagnose(sim, obs, fine_sim=fine, effects=effects, comm=comm, noise=noise,
                      progress=lambda what: bar.update(1, what))
     log.info("%s: verdict %s", name, d.verdict)
     if comm.rank == 0:
@@ -51,8 +51,8 @@ def _diagnose_one(name, rec, specs, target: Path, *, refinement, effects, nu0, c
 
 def diagnose_recordings(recordings: str, specimens: str, out: str, *,
                         specimen: str | None = None, refinement: int = 1,
-                        effects=None, nu0: float = 0.49, comm=MPI.COMM_WORLD,
-                        progress=None) -> dict:
+                        effects=None, nu0: float = 0.49, noise: dict | None = None,
+                        comm=MPI.COMM_WORLD, progress=None) -> dict:
     """Diagnose every specimen of a recordings table (see the module docstring).
 
     Returns ``{specimen: diagnosis.json content}`` on rank 0 (every specimen, reused or
@@ -65,13 +65,13 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
             raise ValueError(f"{recordings}: no recordings of specimen {specimen!r}")
         names = [specimen]
     out = Path(out)
-    kw = dict(refinement=refinement, effects=effects, nu0=nu0)
+    kw = dict(refinement=refinement, effects=effects, nu0=nu0, noise=noise)
     if len(names) == 1:
         res = _diagnose_one(names[0], rec, specs, out, comm=comm, progress=progress, **kw)
         comm.Barrier()
         return {names[0]: dict(res, reused=False)} if comm.rank == 0 else {}
     config = {"refinement": refinement, "effects": sorted(effects) if effects else None,
-              "nu0": nu0, "recordings": str(Path(recordings).resolve())}
+              "nu0": nu0, "noise": noise, "recordings": str(Path(recordings).resolve())}
     error = None
     if comm.rank == 0:
         error = _claim(out, config)
@@ -135,12 +135,14 @@ def _digest(r: dict) -> dict:
 def summary_markdown(results: dict) -> str:
     """One line per specimen: verdict, RMS before and after, the worst located segment."""
     lines = ["# Diagnosis of every specimen", "",
-             "| specimen | verdict | RMS/noise before -> after | where the base model misfits |",
-             "|---|---|---|---|"]
+             "| specimen | verdict | status | RMS/noise before -> after | where the base model "
+             "misfits | what remains |", "|---|---|---|---|---|---|"]
     for n, r in results.items():
         where = r["located"][0]["segment"] if r.get("located") else "-"
-        lines.append(f"| {n} | {r['verdict']} | {r['rms_before']:.2f} -> "
-                     f"{r['rms_after']:.2f} | {where} |")
+        left = r.get("remaining", {}).get("located") or []
+        lines.append(f"| {n} | {r['verdict']} | {r.get('status', '-')} | "
+                     f"{r['rms_before']:.2f} -> {r['rms_after']:.2f} | {where} | "
+                     f"{left[0]['segment'] if left else '-'} |")
     counts: dict[str, int] = {}
     for r in results.values():
         counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1

@@ -35,7 +35,7 @@ from simulators.coordinates import model_point
 from simulators.fe import FESimulator
 
 from .effects import BASE_NAMES, EFFECTS
-from .engine import diagnose
+from .engine import ENGINE_VERSION, diagnose
 from .fitting import fit
 
 log = logging.getLogger(__name__)
@@ -173,7 +173,7 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
     # what a diagnosis result depends on besides the recordings: earlier results are
     # reused only when it is unchanged
     config = {"refinement": refinement, "correction_refinement": correction_refinement,
-              "effects": classes}
+              "effects": classes, "engine": ENGINE_VERSION}
     previous: dict = {}
     reusable = ((out / "config.json").exists()
                 and json.loads((out / "config.json").read_text()) == config)
@@ -342,6 +342,8 @@ def score(cases, results, classes, rms_true=None) -> dict:
     conf = pd.DataFrame(0, index=names, columns=names + ["error"])
     recovery = []
     for c, r in zip(cases, results, strict=True):
+        if r["verdict"] not in conf.columns:  # a combination or `unexplained`
+            conf[r["verdict"]] = 0
         conf.loc[c.effect, r["verdict"]] += 1
         if c.effect != "none" and r["verdict"] == c.effect:
             for n in map(str, EFFECTS[c.effect].names):

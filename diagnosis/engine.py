@@ -1,24 +1,28 @@
-"""Locate the mismatch, name the missing physics, model it, show the fit improve.
+"""Locate the mismatch, name the missing physics, model it, say what remains.
 
-1. Base fit (one-term Ogden, nu0 fixed) by trust-region least squares on the residuals
-   z = (prediction - recording) / sigma, sigma the noise of each (curve, channel) estimated
-   from the second differences of the base residual (diagnosis.noise), so smooth misfit
-   does not inflate it.  The FE model's discretisation error is estimated against the next
-   finer mesh at the base optimum and added to every prediction (deferred correction), so
-   that it is never mistaken for physics.
-2. Locate: the base residual decomposed along the protocol's axes with chi-square and runs
-   tests (diagnosis.noise).
-3. Name: every candidate effect (diagnosis.effects) is fitted from the base fit, base and
-   effect parameters together, FE in the loop with sensitivities.  Nested models compared
-   by the likelihood-ratio statistic chi2_base - chi2_effect ~ chi2(k_effect) (Gaussian
-   noise of known sigma) and by BIC = chi2 + k ln n.  An effect is significant when its LRT
-   p-value is below ``alpha`` / (number of candidates) and its BIC beats the base by more
-   than ``bic_margin`` ("very strong" evidence on the Kass-Raftery scale); the verdict is
-   the significant effect of lowest BIC, or ``none``.  Two significant effects within
-   ``bic_margin`` of each other cannot be told apart: the report says so and names the test
-   that would separate them.
-4. Model it: the winner's refit, residual RMS before/after against the noise, and the bias
-   of the base parameters (mu, alpha) caused by the omission.
+1. **Base fit** (one-term Ogden, nu0 fixed) by trust-region least squares, weighted by the
+   noise of each (curve, channel) (the stated instrument noise, or estimated from second
+   differences, which a smooth misfit hardly changes).  The FE model's discretisation
+   error is estimated against the next finer mesh at the base optimum and added to every
+   prediction (deferred correction, scaled to the Richardson limit of the observed order),
+   so that it is never mistaken for physics.
+2. **Name**: rounds of forward selection (:mod:`diagnosis.selection`): every candidate
+   (:mod:`diagnosis.effects`) is scored at the current fit, the promising ones are fitted
+   with FE in the loop, and their gains are compared under a noise model of the rig
+   (white noise, wander, drift: :func:`diagnosis.noise.fit_noise`) estimated from the
+   best fit's residual: likelihood-ratio test (p < ``alpha`` / candidates) and BIC margin.
+   An effect is added while one earns its place; earlier ones are re-tested in its
+   presence.  Two effects within the BIC margin are reported as indistinguishable, with
+   the test that would separate them.
+3. **Locate and check**: the base residual and the final residual, whitened by the final
+   noise model, are located along the protocol's axes (:mod:`diagnosis.locate`); what the
+   final model leaves systematic (located, or reproducible across repetitions:
+   :mod:`diagnosis.remaining`) decides the status.
+
+Outcome: ``verdict`` is ``none``, an effect, effects joined by ``+``, or ``unexplained``;
+``status`` is ``none`` (nothing systematic), ``explained`` (the named effects leave noise),
+``partially explained`` (they leave a systematic misfit) or ``unexplained`` (a systematic
+misfit no candidate removes; the closest candidates are listed).
 """
 
 from __future__ import annotations
@@ -27,11 +31,10 @@ import contextlib
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
-from scipy import stats
 
 from brain_fe.parallel import SharedCounter, dynamic_items
 from simulators.coordinates import NU0
@@ -39,54 +42,101 @@ from simulators.coordinates import NU0
 from . import locate as loc
 from .effects import BASE_NAMES, check_effects, library, separating_test
 from .fitting import Fit, fit, initial_guess, sigma_guess
-from .noise import estimate_noise
-from .screen import data_scales, design, score
+from .noise import NoiseModel, estimate_noise, fit_noise
+from .remaining import remaining
+from .selection import Context, Union, compare, compatible, run_round
 
 log = logging.getLogger(__name__)
+
+# Bump when a change can alter a verdict: stored benchmark results of another version are
+# diagnosed again instead of reused
+ENGINE_VERSION = "2026.11-open-world-2"
+RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
+MAX_EFFECTS = 3
 
 
 @dataclass
 class Diagnosis:
     base: Fit
-    fits: dict
-    sigma: np.ndarray
-    located: pd.DataFrame
-    verdict: str
-    ranking: list
+    final: Fit
+    effects: list
+    status: str
+    rounds: list
+    noise: NoiseModel  # estimated from the final model's residual
+    located: pd.DataFrame  # the base model's misfit, whitened by ``noise``
+    remaining: dict  # what the final model leaves (diagnosis.remaining)
     ambiguous: list
     discretisation: dict
     elapsed_s: float
     obs: pd.DataFrame
+    notes: list = field(default_factory=list)
+
+    @property
+    def verdict(self) -> str:
+        if self.effects:
+            return "+".join(self.effects)
+        return "unexplained" if self.status == "unexplained" else "none"
+
+    @property
+    def ranking(self) -> list:
+        """The first round: every candidate against the base model."""
+        return self.rounds[0].table if self.rounds else []
 
     @property
     def winner(self) -> Fit:
-        return self.fits.get(self.verdict, self.base)
+        return self.final
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """Per row, the stationary SD of the noise."""
+        return self.noise.sd()
 
     def rms(self, fit: Fit) -> dict:
         """Residual RMS per (curve, channel) in recording units and in units of the noise."""
         out = {}
         r = fit.prediction - self.obs["value"].to_numpy(float)
+        sd = self.sigma
         for (c, ch), g in self.obs.groupby(["curve", "channel"], sort=False):
             i = g.index.to_numpy()
             out[f"{c}/{ch}"] = {"rms": float(np.sqrt(np.mean(r[i] ** 2))),
-                                "noise": float(np.sqrt(np.mean(self.sigma[i] ** 2))),
-                                "rms_over_noise": float(np.sqrt(np.mean(fit.z[i] ** 2)))}
+                                "noise": float(np.sqrt(np.mean(sd[i] ** 2))),
+                                "rms_over_noise": float(np.sqrt(np.mean((r[i] / sd[i]) ** 2)))}
         return out
 
+    def _rms_total(self, fit: Fit) -> float:
+        r = fit.prediction - self.obs["value"].to_numpy(float)
+        return float(np.sqrt(np.mean((r / self.sigma) ** 2)))
+
+    def closest(self, k: int = 2) -> list:
+        """The candidates that came closest to explaining the misfit (first round)."""
+        rows = [r for r in self.ranking if not math.isnan(r["lrt"])]
+        rows.sort(key=lambda r: -r["lrt"])
+        return [{"effect": r["effect"], "lrt": r["lrt"], "delta_bic": r["delta_bic"]}
+                for r in rows[:k]]
+
     def to_json(self) -> dict:
-        w = self.winner
+        w = self.final
         bias = {str(n): {"base": self.base.values[n], "refit": w.values[n],
                          "relative": (self.base.values[n] - w.values[n]) / abs(w.values[n])}
                 for n in BASE_NAMES}
+        rem = {k: v for k, v in self.remaining.items() if k != "table"}
         return {
-            "located": loc.summary(self.located)["located"],
             "verdict": self.verdict,
+            "effects": list(self.effects),
+            "status": self.status,
+            "located": loc.summary(self.located)["located"],
+            "remaining": rem,
+            "closest": self.closest() if self.status == "unexplained" else [],
             "ranking": self.ranking,
+            "rounds": [{"from": "+".join(r.current) or "base", "added": r.added,
+                        "dropped": r.dropped, "table": r.table} for r in self.rounds],
             "ambiguous": self.ambiguous,
-            "rms_before": float(np.sqrt(np.mean(self.base.z ** 2))),
-            "rms_after": float(np.sqrt(np.mean(w.z ** 2))),
+            "notes": self.notes,
+            "rms_before": self._rms_total(self.base),
+            "rms_after": self._rms_total(w),
             "rms_unit": "noise standard deviations (1 = fit at the noise level)",
             "noise": {k: v["noise"] for k, v in self.rms(self.base).items()},
+            "noise_model": self.noise.describe(),
             "rms_by_curve_before": self.rms(self.base),
             "rms_by_curve_after": self.rms(w),
             "base_parameters": _plain(self.base.values),
@@ -102,24 +152,7 @@ def _plain(d: dict) -> dict:
     return {str(k): float(v) for k, v in d.items()}
 
 
-def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: float = 1e-3,
-             bic_margin: float = 10.0, max_nfev: int = 15, comm=None,
-             progress=None) -> Diagnosis:
-    """Diagnose one specimen. ``sim``/``fine_sim``: simulators on the working mesh and on
-    the next finer one (None: no discretisation correction, e.g. analytical models).
-    With ``comm`` (MPI) the candidate fits are shared among the ranks."""
-    t0 = time.perf_counter()
-    obs = obs.reset_index(drop=True)
-    with _sharing(sim, comm), _sharing(fine_sim, comm):  # the ranks share every curve
-        base, sigma, disc, J_base = _base(sim, fine_sim, obs, comm)
-    located = loc.locate(obs, base.prediction - obs["value"].to_numpy(float), sigma)
-    if progress:
-        progress("base")
-    names = list(BASE_NAMES)
-    lib = library(sim.kind)
-    check_effects(effects, sim.kind)
-    cands = list(effects or lib)
-
+def _share_with(comm):
     def share(items, work, cost):
         """``work`` on the ``items``, most expensive first (by the estimated ``cost``),
         each taken by whichever rank of ``comm`` is free; every rank gets every result,
@@ -133,84 +166,133 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
             counter.free()
             done = [x for part in comm.allgather(done) for x in part]
         return [r for _, r in sorted(done, key=lambda x: x[0])]
+    return share
 
-    # score every candidate at the base fit; fit those that could earn their place
-    scales = data_scales(obs, base.values)
-    points = [(n, p) for n in cands for p in design(lib[n], sim.nu0, scales)]
-    scored = share(points, lambda it: _score_or_none(sim, obs, sigma, base, lib[it[0]],
-                                                     it[1], names, J_base),
-                   lambda it: HISTORY_COST if it[0] in HISTORY else 1.0)
-    best: dict = {}
-    for s in scored:
-        if s is not None and (s.effect not in best or s.lm > best[s.effect].lm):
-            best[s.effect] = s
-    n_obs, m = len(obs), max(len(cands), 1)
-    to_fit = [n for n in cands if n in best and best[n].lm >= SCREEN_FRACTION * _needed(
-        len(lib[n].names), n_obs, alpha / m, bic_margin)]
+
+def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: float = 1e-3,
+             bic_margin: float = 10.0, max_nfev: int = 15, comm=None, progress=None,
+             noise: dict | None = None, max_effects: int = MAX_EFFECTS) -> Diagnosis:
+    """Diagnose one specimen.  ``sim``/``fine_sim``: simulators on the working mesh and on
+    the next finer one (None: no discretisation correction, e.g. analytical models);
+    ``noise``: the stated white noise per channel ({"stress": SD in kPa, ...}), else
+    estimated.  With ``comm`` (MPI) the work of every stage is shared among the ranks."""
+    t0 = time.perf_counter()
+    obs = obs.reset_index(drop=True)
+    check_effects(effects, sim.kind)
+    with _sharing(sim, comm), _sharing(fine_sim, comm):  # the ranks share every curve
+        base, weights, disc, J_base = _base(sim, fine_sim, obs, noise)
     if progress:
-        progress(f"screened: fitting {', '.join(to_fit) or 'nothing'}")
-    results = share(to_fit, lambda name: _fit_or_none(sim, obs, sigma, best[name].start,
-                                                      names + list(lib[name].names), name,
-                                                      RANKING_NFEV, lib[name]),
-                    lambda name: best[name].seconds)
-    fits = {n: f for n, f in zip(to_fit, results, strict=True) if f is not None}
-    leader = min(fits.values(), key=lambda f: f.bic, default=None)
-    if leader is not None and not leader.converged:  # the winner's fit runs to the end
-        more = _fit_or_none(sim, obs, sigma, leader.values, leader.names, leader.effect,
-                            max_nfev, lib[leader.effect])
-        if more is not None and more.chi2 <= leader.chi2:
-            fits[leader.effect] = more
-    ranking = []
-    for name, f in fits.items():
-        dchi2 = base.chi2 - f.chi2
-        p = float(stats.chi2.sf(max(dchi2, 0.0), f.k - base.k))
-        ranking.append({"effect": name, "bic": f.bic, "delta_bic": f.bic - base.bic,
-                        "aic": f.aic, "chi2": f.chi2, "lrt": dchi2, "p_value": p,
-                        "significant": bool(p < alpha / m and base.bic - f.bic > bic_margin),
-                        "parameters": _plain({n: f.values[n] for n in lib[name].names}),
-                        "stderr": _plain({n: f.stderr.get(n, float("nan"))
-                                          for n in lib[name].names}),
-                        "score": best[name].lm})
-    for name in cands:
-        if name not in fits:
-            s = best.get(name)
-            ranking.append({"effect": name, "bic": float("nan"), "delta_bic": float("nan"),
-                            "aic": float("nan"), "chi2": float("nan"), "lrt": float("nan"),
-                            "p_value": float("nan"), "significant": False,
-                            "parameters": {}, "stderr": {},
-                            "score": s.lm if s is not None else float("nan"),
-                            "screened_out": True})
-    ranking.sort(key=lambda r: (math.isnan(r["bic"]), r["bic"], -r["score"]))
-    significant = [r for r in ranking if r["significant"]]
-    verdict = significant[0]["effect"] if significant else "none"
-    ambiguous = []
-    if significant:
-        for r in significant[1:]:
-            if r["bic"] - significant[0]["bic"] < bic_margin:
-                ambiguous.append({"effects": [verdict, r["effect"]],
-                                  "delta_bic": r["bic"] - significant[0]["bic"],
-                                  "separating_test": separating_test(verdict, r["effect"])})
+        progress("base")
+    lib = library(sim.kind)
+    ctx = Context(sim, obs, weights, lib, list(BASE_NAMES), alpha, bic_margin, max_nfev,
+                  _share_with(comm), noise)
+    rounds, current, chosen, J = [], base, [], J_base
+    ambiguous, notes = [], []
+    final_noise = rem = None
+    while len(chosen) < max_effects:
+        cands = [e for e in (effects or lib) if e not in chosen and compatible(e, chosen)]
+        if not cands:
+            break
+        rnd = run_round(ctx, current, chosen, cands, J, progress,
+                        first=rounds[0] if rounds else None)
+        rounds.append(rnd)
+        if not rnd.fits:
+            rnd.noise = fit_noise(obs, _residual(obs, current), stated=noise)
+            rnd.table = compare(ctx, rnd, current, len(cands), rnd.noise)
+            break
+        leader = min(rnd.fits.values(), key=lambda f: f.chi2)
+        rnd.noise = fit_noise(obs, _residual(obs, leader), stated=noise)
+        rnd.table = compare(ctx, rnd, current, len(cands), rnd.noise)
+        sig = [r for r in rnd.table if r["significant"]]
+        if not sig:
+            break
+        added = sig[0]["effect"]
+        ambiguous += [{"effects": [added, r["effect"]], "delta_bic": r["delta_bic"]
+                       - sig[0]["delta_bic"], "separating_test": separating_test(
+                           added, r["effect"])} for r in sig[1:]
+                      if r["delta_bic"] - sig[0]["delta_bic"] < bic_margin]
+        new = _complete(ctx, rnd.fits[added], [*chosen, added])
+        rnd.added = added
+        chosen = [*chosen, added]
+        current, chosen, dropped = _retest(ctx, new, chosen, rnd.noise)
+        rnd.dropped = dropped
+        final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
+        if not rem["systematic"]:  # explained: no further effect can earn a place
+            break
+        with _sharing(sim, comm):
+            J = sim.predict(current.values, _all_names(lib, chosen)).jacobian
+    if final_noise is None or final_noise.fitted_to is not current:
+        final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
+    located = loc.locate(obs, final_noise.whiten(_residual(obs, base)), 1.0, sigma_dof=np.inf)
+    if chosen:
+        status = "partially explained" if rem["systematic"] else "explained"
+    else:
+        status = "unexplained" if rem["systematic"] else "none"
+    if rem["reproducible"]["repeats"] == "none":
+        notes.append("no repeated ramp (one pass of each): wander and a smooth misfit cannot "
+                     "be told apart by repetition; only the located test applies")
     for a in ambiguous:
         log.warning("%s and %s cannot be told apart with these tests (dBIC %.1f); %s",
                     *a["effects"], a["delta_bic"], a["separating_test"])
-    return Diagnosis(base, fits, sigma, located, verdict, ranking, ambiguous, disc,
-                     time.perf_counter() - t0, obs)
+    return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
+                     ambiguous, disc, time.perf_counter() - t0, obs, notes)
 
 
-SCREEN_FRACTION = 0.25  # fit a candidate whose score reaches this share of what it needs
-# Effects that follow the recorded path (history) cost about this many elastic evaluations
-HISTORY = ("viscoelastic", "mullins")
-HISTORY_COST = 4.0
-RANKING_NFEV = 8  # evaluations of a competitor's fit (the leader's fit is then completed)
+def _what_remains(obs, current: Fit, stated, alpha, bic_margin):
+    """The noise model of ``current``'s residual and what that model leaves systematic."""
+    r = _residual(obs, current)
+    nm = fit_noise(obs, r, stated=stated)
+    nm.fitted_to = current
+    return nm, remaining(obs, r, nm, alpha=alpha, bic_margin=bic_margin,
+                         prediction=current.prediction)
 
 
-def _needed(k: int, n: int, p: float, bic_margin: float) -> float:
-    """The chi-square reduction an effect with k parameters needs to be significant."""
-    return max(float(stats.chi2.isf(p, k)), k * math.log(n) + bic_margin)
+def _residual(obs, f: Fit) -> np.ndarray:
+    return f.prediction - obs["value"].to_numpy(float)
 
 
-def _base(sim, fine_sim, obs, comm):
-    """Base fit, discretisation correction, noise estimate, refit and the base Jacobian."""
+def _all_names(lib, effects) -> list:
+    return list(BASE_NAMES) + [n for e in effects for n in lib[e].names]
+
+
+def _complete(ctx: Context, f: Fit, effects: list) -> Fit:
+    """Run a fit that the ranking budget cut short to the end."""
+    if f.converged:
+        return f
+    more = fit(ctx.sim, ctx.obs, ctx.weights, f.values, f.names, effect=f.effect,
+               max_nfev=ctx.max_nfev, effect_def=_union(ctx, effects))
+    return more if more.chi2 <= f.chi2 else f
+
+
+def _union(ctx, effects):
+    return Union(ctx.lib, effects)
+
+
+def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list, list]:
+    """Re-test every effect chosen before the last one in the presence of the others: refit
+    without it, drop it when it no longer earns its place.  Returns (fit, effects, dropped)."""
+    dropped = []
+    for e in list(chosen[:-1]):
+        rest = [c for c in chosen if c != e]
+        start = {k: v for k, v in current.values.items() if k not in ctx.lib[e].names}
+        try:
+            without = fit(ctx.sim, ctx.obs, ctx.weights, start, _all_names(ctx.lib, rest),
+                          effect="+".join(rest), max_nfev=ctx.max_nfev,
+                          effect_def=_union(ctx, rest))
+        except Exception as exc:  # cannot do without it: it stays
+            log.warning("re-test without %s failed: %s", e, exc)
+            continue
+        k = len(ctx.lib[e].names)
+        lrt = ctx.chi2(noise, without) - ctx.chi2(noise, current)
+        if lrt < ctx.needed(k, max(len(chosen), 1)):
+            log.info("%s no longer earns its place next to %s (LRT %.1f)", e, rest, lrt)
+            current, chosen = without, rest
+            dropped.append(e)
+    return current, chosen, dropped
+
+
+def _base(sim, fine_sim, obs, stated):
+    """Base fit, discretisation correction, noise weights, refit and the base Jacobian."""
     names = list(BASE_NAMES)
     sigma = sigma_guess(obs)
     base = fit(sim, obs, sigma, {**initial_guess(obs), NU0: sim.nu0}, names, max_nfev=40)
@@ -219,10 +301,14 @@ def _base(sim, fine_sim, obs, comm):
         y_fine, _ = fine_sim.predict(base.values, [])
         sim.correction = np.zeros(len(obs))
         y_coarse, _ = sim.predict(base.values, [])
-        sim.correction = y_fine - y_coarse
+        factor = 2 ** RICHARDSON_ORDER / (2 ** RICHARDSON_ORDER - 1)
+        sim.correction = factor * (y_fine - y_coarse)
         disc = {"corrected": True, "refinement": sim.refinement,
-                "reference_refinement": fine_sim.refinement}
+                "reference_refinement": fine_sim.refinement, "richardson_factor": factor}
     sigma = estimate_noise(obs, base.prediction - obs["value"].to_numpy(float))
+    if stated:
+        sigma = np.array([stated.get(c, s) for c, s in zip(obs["channel"], sigma,
+                                                             strict=True)], dtype=float)
     base = fit(sim, obs, sigma, base.values, names, max_nfev=20)
     if fine_sim is not None:
         rel = np.abs(sim.correction) / sigma
@@ -240,20 +326,3 @@ def _sharing(sim, comm):
         return
     with sim.sharing(comm):
         yield sim
-
-
-def _score_or_none(sim, obs, sigma, current, effect, point, names, J_base):
-    try:
-        return score(sim, obs, sigma, current, effect, point, names, J_base)
-    except Exception as exc:  # a model that cannot be solved there scores nothing
-        log.warning("score of %s at %s failed: %s", effect.name, point, exc)
-        return None
-
-
-def _fit_or_none(sim, obs, sigma, start, names, effect, max_nfev, effect_def):
-    try:
-        return fit(sim, obs, sigma, start, names, effect=effect, max_nfev=max_nfev,
-                   effect_def=effect_def)
-    except Exception as exc:  # a failed candidate is reported, not fatal
-        log.warning("candidate %s failed: %s", effect, exc)
-        return None

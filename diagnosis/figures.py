@@ -152,11 +152,12 @@ def before_after(d, path) -> None:
                     label=f"recorded, {br}")
         x = g["control"].to_numpy()
         ax.plot(x, d.base.prediction[i], "-", color="0.4", lw=1, label="base fit")
-        if d.verdict != "none":
-            ax.plot(x, d.winner.prediction[i], "-", color="tab:red", lw=1,
+        if d.effects:
+            ax.plot(x, d.final.prediction[i], "-", color="tab:red", lw=1,
                     label=f"with {d.verdict}")
-        rb = np.sqrt(np.mean(d.base.z[i] ** 2))
-        ra = np.sqrt(np.mean(d.winner.z[i] ** 2))
+        value, sd = g["value"].to_numpy(float), d.sigma[i]
+        rb = np.sqrt(np.mean(((d.base.prediction[i] - value) / sd) ** 2))
+        ra = np.sqrt(np.mean(((d.final.prediction[i] - value) / sd) ** 2))
         ax.set_title(f"{curve} / {ch}\nRMS/noise {rb:.2f} -> {ra:.2f}", fontsize=9)
         ax.set_xlabel("stretch" if "compression" in curve or "tension" in curve
                       else "amount of shear")

@@ -5,6 +5,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import numpy as np
+
 from brain_fe.io import staged_directory, write_json_atomic, write_text_atomic
 
 from .effects import EFFECTS
@@ -20,46 +22,91 @@ def write(d, out: str | Path, *, title: str = "diagnosis") -> dict:
         return _write(d, stage, title)
 
 
+STATUS_TEXT = {
+    "none": "the base model fits at the noise level: nothing systematic to explain",
+    "explained": "the named physics removes the located mismatch: what remains is noise",
+    "partially explained": "the named physics removes part of the mismatch; a systematic "
+    "misfit remains (below)",
+    "unexplained": "a systematic misfit that no candidate of the library removes",
+}
+
+
+def _segments(rows, limit=12) -> list[str]:
+    out = ["| axis | segment | n | RMS/noise | p |", "|---|---|---|---|---|"]
+    for s in rows[:limit]:
+        out.append(f"| {s['axis']} | {s['segment']} | {s['n']} | {s['rms_z']:.2f} | "
+                   f"{s['p_value']:.2g} |")
+    if not rows:
+        out.append("| - | no systematic segment | | | |")
+    return out
+
+
 def _write(d, out: Path, title: str) -> dict:
     res = d.to_json()
     r = d.base.prediction - d.obs["value"].to_numpy(float)
-    mismatch_map(d.obs, r, d.sigma, d.located, out / "mismatch_map.png")
+    mismatch_map(d.obs, d.noise.whiten(r), np.ones(len(r)), d.located,
+                 out / "mismatch_map.png")
     before_after(d, out / "before_after.png")
     write_json_atomic(out / "diagnosis.json", res, indent=1, default=float)
-    lines = [f"# {title}", "",
-             f"**Verdict: {d.verdict}**"
-             + (f" — {EFFECTS[d.verdict].description}" if d.verdict in EFFECTS else
-                " — no candidate explains the misfit significantly better than the base model"),
-             "", f"Residual RMS / noise: {res['rms_before']:.2f} (base) -> "
+    named = " + ".join(EFFECTS[e].description if e in EFFECTS else e for e in d.effects)
+    lines = [f"# {title}", "", f"**Verdict: {d.verdict}** ({d.status})"
+             + (f" — {named}" if named else ""), "", STATUS_TEXT[d.status] + ".", "",
+             f"Residual RMS / noise: {res['rms_before']:.2f} (base) -> "
              f"{res['rms_after']:.2f} (after modelling); 1 = noise level.", "",
-             "## Located mismatch", "",
-             "| axis | segment | n | RMS/noise | p |", "|---|---|---|---|---|"]
-    for s in res["located"][:12]:
-        lines.append(f"| {s['axis']} | {s['segment']} | {s['n']} | {s['rms_z']:.2f} | "
-                     f"{s['p_value']:.2g} |")
-    if not res["located"]:
-        lines.append("| - | no systematic segment | | | |")
-    lines += ["", "![mismatch map](mismatch_map.png)", "", "## Ranking of explanations", "",
-              "BIC = chi2 + k ln n; LRT p for chi2_base - chi2_effect ~ chi2(k_effect).", "",
-              "| effect | dBIC vs base | LRT p | significant | parameters |",
-              "|---|---|---|---|---|"]
-    for e in res["ranking"]:
-        pars = ", ".join(f"{k} = {v:.4g}" for k, v in e["parameters"].items())
-        lines.append(f"| {e['effect']} | {e['delta_bic']:.1f} | {e['p_value']:.2g} | "
-                     f"{'yes' if e['significant'] else 'no'} | {pars} |")
+             "## Where the base model misfits", "",
+             "Residuals whitened by the rig's noise model (white noise, wander, drift; "
+             "estimated from the final model's residual).", ""]
+    lines += _segments(res["located"])
+    lines += ["", "![mismatch map](mismatch_map.png)", "", "## What remains", ""]
+    rem = res["remaining"]
+    rep = rem["reproducible"]
+    verdict = "significant" if rep["significant"] else "not significant"
+    lines += [f"Reproducible misfit (the same at every repetition, repeats: "
+              f"{rep['repeats']}): chi2 gain {rep['gain']:.1f} on {rep['dof']} parameters, "
+              f"p = {rep['p_value']:.2g}, {verdict}.", ""]
+    tr = rem.get("trend")
+    if tr and tr["dof"]:
+        lines += [f"Stiffness trending with time within a test: chi2 gain {tr['gain']:.1f} "
+                  f"on {tr['dof']} parameters, p = {tr['p_value']:.2g}, "
+                  f"{'significant' if tr['significant'] else 'not significant'}.", ""]
+    lines += _segments(rem["located"])
+    if res["closest"]:
+        lines += ["", "Closest candidates: " + ", ".join(
+            f"{c['effect']} (LRT {c['lrt']:.1f}, dBIC {c['delta_bic']:.1f})"
+            for c in res["closest"])]
+    for n in res["notes"]:
+        lines += ["", f"Note: {n}."]
+    lines += ["", "## Rounds of selection", "",
+              "Each round adds the significant effect of lowest BIC to the model (LRT p < "
+              "alpha / candidates and a BIC gain beyond the margin, under the rig's noise "
+              "model); 'screened out': its score could not reach significance.", ""]
+    for rnd in res["rounds"]:
+        lines += [f"From **{rnd['from']}**: added {rnd['added'] or 'nothing'}"
+                  + (f", dropped {', '.join(rnd['dropped'])}" if rnd["dropped"] else ""), "",
+                  "| effect | score | dBIC | LRT p | significant | parameters |",
+                  "|---|---|---|---|---|---|"]
+        for e in rnd["table"]:
+            pars = ", ".join(f"{k} = {v:.4g}" for k, v in e["parameters"].items())
+            sig = "screened out" if e.get("screened_out") else (
+                "yes" if e["significant"] else "no")
+            lines.append(f"| {e['effect']} | {e['score']:.1f} | {e['delta_bic']:.1f} | "
+                         f"{e['p_value']:.2g} | {sig} | {pars} |")
+        lines.append("")
     for a in res["ambiguous"]:
-        lines += ["", f"**Cannot tell apart** {a['effects'][0]} and {a['effects'][1]} "
-                  f"(dBIC {a['delta_bic']:.1f}); would separate them: {a['separating_test']}."]
-    lines += ["", "## Before and after", "", "![before/after](before_after.png)", "",
+        lines += [f"**Cannot tell apart** {a['effects'][0]} and {a['effects'][1]} "
+                  f"(dBIC {a['delta_bic']:.1f}); would separate them: {a['separating_test']}.",
+                  ""]
+    lines += ["## Before and after", "", "![before/after](before_after.png)", "",
               "| parameter | base fit | refit | bias of the base fit |", "|---|---|---|---|"]
     for n, b in res["base_bias"].items():
         lines.append(f"| {n} | {b['base']:.4g} | {b['refit']:.4g} | {100 * b['relative']:+.1f} % |")
     disc = res["discretisation"]
     if disc.get("corrected"):
-        lines += ["", f"Discretisation: the k = {disc['refinement']} mesh is corrected by its "
-                  f"difference to k = {disc['reference_refinement']} at the base fit "
-                  f"(max {disc['max_over_noise']:.2f}, RMS {disc['rms_over_noise']:.2f} noise "
-                  "standard deviations)."]
+        lines += ["", f"Discretisation: the k = {disc['refinement']} mesh is corrected by "
+                  f"{disc['richardson_factor']:.3f} times its difference to k = "
+                  f"{disc['reference_refinement']} at the base fit (the Richardson limit of "
+                  f"order 3; correction max {disc['max_over_noise']:.2f}, RMS "
+                  f"{disc['rms_over_noise']:.2f} noise standard deviations)."]
     lines += ["", f"Elapsed: {res['elapsed_s']:.0f} s."]
     write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
     return res

@@ -28,12 +28,17 @@ import pandas as pd
 
 from brain_fe.parameters import Param
 
-# Fixed generic design of the parameters that act only through another (see docstring)
+# Fixed generic design (see docstring), scaled by the data
 TAU_OVER_RAMP = (0.1, 1.0, 10.0)  # relaxation time / duration of a ramp
 M_OVER_ENERGY = (0.01, 0.1, 1.0)  # softening energy scale / energy reached
 ALPHA_1 = (-20.0, -5.0, 5.0, 20.0)  # exponent of a second Ogden term
-STIFF_LOG10_K = 4.0  # a glue layer 1e4 kPa/mm stiff acts as glued (k -> infinity)
+# Effects far from linear between neutral and realistic sizes are also scored away from
+# the neutral point: a glue layer's stiffness relative to the specimen's shear stiffness
+# per length mu / H (1e3: as glued), and Poisson ratios below the assumed one
+GLUE_OVER_SHEAR = (1e3, 30.0, 1.0, 0.1)
+NU0_BELOW = (0.45, 0.35)
 FRICTIONLESS_LOG10_K = -3.0  # the glued-cube candidate's neutral end: no friction
+CUBE_LOG10_K = (-3.0, -0.5, 1.0, 2.5)
 
 
 @dataclass
@@ -46,9 +51,10 @@ class Score:
     seconds: float = 0.0  # cost of the prediction (a guide to the cost of the fit)
 
 
-def data_scales(obs: pd.DataFrame, values: dict) -> dict:
-    """The time and energy scales the generic design is built on: the median duration of a
-    ramp [s] and mu (max strain)^2 [kPa], the isochoric energy the specimen reaches."""
+def data_scales(obs: pd.DataFrame, values: dict, height_mm: float = 5.0) -> dict:
+    """The scales the generic design is built on: the median duration of a ramp [s],
+    mu (max strain)^2 [kPa] (the isochoric energy the specimen reaches) and mu / H
+    [kPa/mm] (its shear stiffness per length, the scale of a glue layer's stiffness)."""
     t = obs["time_s"].to_numpy(float)
     ramp = []
     for _, g in obs.groupby(["curve", "channel", "cycle", "branch"], sort=False):
@@ -61,13 +67,16 @@ def data_scales(obs: pd.DataFrame, values: dict) -> dict:
     ctl = obs["control"].to_numpy(float)
     strain = np.where(shear, np.abs(ctl) / math.sqrt(3.0), np.abs(ctl - 1.0))
     mu = float(values.get(Param("mu", 0), 1.0))
-    return {"t_ramp": max(t_ramp, 1e-6), "energy": max(mu * float(np.max(strain)) ** 2, 1e-9)}
+    return {"t_ramp": max(t_ramp, 1e-6), "energy": max(mu * float(np.max(strain)) ** 2, 1e-9),
+            "glue": max(mu / height_mm, 1e-9)}
 
 
 def design(effect, nu0: float, scales: dict) -> list[dict]:
-    """Neutral design points of an effect: its parameters at their neutral values, those
-    that act only through another (listed in :data:`NUISANCE`) from the generic design."""
+    """Design points of an effect: its parameters at their neutral values, those that act
+    only through another (listed in :data:`NUISANCE`) from the generic design; for the
+    strongly nonlinear effects also points of realistic size (see the constants above)."""
     names = {str(n) for n in effect.names}
+    lo, hi = effect.bounds(effect.names[0])
     if names == {"beta_0", "log10_tau_0"}:
         return [{"beta_0": 0.0, "log10_tau_0": math.log10(f * scales["t_ramp"])}
                 for f in TAU_OVER_RAMP]
@@ -77,12 +86,17 @@ def design(effect, nu0: float, scales: dict) -> list[dict]:
     if names == {"mu_1", "alpha_1"}:
         return [{"mu_1": 0.0, "alpha_1": a} for a in ALPHA_1]
     if names == {"nu0"}:
-        return [{"nu0": nu0}]
+        return [{"nu0": nu0}] + [{"nu0": v} for v in NU0_BELOW if lo <= v < nu0]
     if names == {"log10_k"}:
-        k = FRICTIONLESS_LOG10_K if effect.name == "glued_ends" else STIFF_LOG10_K
-        return [{"log10_k": k}]
+        if effect.name == "glued_ends":
+            return [{"log10_k": v} for v in CUBE_LOG10_K]
+        ks = [float(np.clip(math.log10(f * scales["glue"]), lo, hi)) for f in GLUE_OVER_SHEAR]
+        return [{"log10_k": k} for k in dict.fromkeys(ks)]
     return [{str(n): 0.0 for n in effect.names}]  # offsets: zero
 
+
+MAX_STEP_OF_RANGE = 0.3  # a Gauss-Newton step longer than this share of the bounds is not
+# trusted as a start
 
 # Parameters with no effect at the neutral point (they act through another): not scored
 NUISANCE = {Param("log10_tau", 0), Param("log10_softening_m"), Param("alpha", 1)}
@@ -90,32 +104,44 @@ NUISANCE = {Param("log10_tau", 0), Param("log10_softening_m"), Param("alpha", 1)
 
 def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dict,
           base_names, base_jacobian: np.ndarray) -> Score:
-    """The score statistic of ``effect`` at the design ``point`` added to the ``current``
-    fit (whose parameters ``base_names`` move too, with ``base_jacobian`` the current
-    model's Jacobian with respect to them: at the neutral point it is the effect model's
-    too), and the Gauss-Newton start."""
+    """The chi-square ``effect`` can remove from the ``current`` fit, predicted by one
+    Gauss-Newton step from the design ``point`` (the current parameters ``base_names``
+    move too).  At a neutral point, where the effect model *is* the current one, this is
+    the score statistic, and ``base_jacobian`` (the current model's) serves for the base
+    columns; elsewhere the point's own Jacobian is used.  Also the Gauss-Newton start."""
     pt = {Param.parse(k): float(v) for k, v in point.items()}
     values = {**current.values, **pt}
     scored = [n for n in effect.names if n not in NUISANCE]
     names = list(base_names) + scored
+    data = obs["value"].to_numpy(float)
+    z_cur = (current.prediction - data) / sigma
     t0 = time.perf_counter()
     pred = sim.predict(values, scored)
+    z = (pred.y - data) / sigma
+    neutral = float(np.max(np.abs(z - z_cur))) < 1e-6
+    if neutral:
+        J = np.column_stack([base_jacobian, pred.jacobian]) / sigma[:, None]
+    else:
+        pred = sim.predict(values, names)
+        J = pred.jacobian / sigma[:, None]
     seconds = time.perf_counter() - t0
-    z = (pred.y - obs["value"].to_numpy(float)) / sigma
-    J = np.column_stack([base_jacobian, pred.jacobian]) / sigma[:, None]
     nb = len(base_names)
     norms = np.linalg.norm(J, axis=0)
     scale = max(float(norms[:nb].max()) if nb else 1.0, 1e-300)
     active = [j for j in range(len(names)) if j < nb or norms[j] > 1e-9 * scale]
     Ja = J[:, active] / np.where(norms[active] > 0, norms[active], 1.0)
     step, *_ = np.linalg.lstsq(Ja, -z, rcond=None)
-    full = float(z @ z - np.sum((z + Ja @ step) ** 2))
+    predicted = float(np.sum((z + Ja @ step) ** 2))
     Jb = J[:, :nb] / np.where(norms[:nb] > 0, norms[:nb], 1.0)
-    sb, *_ = np.linalg.lstsq(Jb, -z, rcond=None)
-    base = float(z @ z - np.sum((z + Jb @ sb) ** 2))
+    sb, *_ = np.linalg.lstsq(Jb, -z_cur, rcond=None)
+    current_chi2 = float(np.sum((z_cur + Jb @ sb) ** 2))
     start = dict(values)
     d = step / np.where(norms[active] > 0, norms[active], 1.0)
     for j, dj in zip(active, d, strict=True):
+        if names[j] in effect.names:
+            lo, hi = effect.bounds(names[j])
+            if abs(dj) > MAX_STEP_OF_RANGE * (hi - lo):  # far beyond the linear model:
+                continue  # start at the design point itself
         start[names[j]] = values[names[j]] + float(dj)  # the fit clips it to the bounds
-    return Score(effect.name, max(full - base, 0.0), len(active) - nb, start, point,
-                 seconds)
+    return Score(effect.name, max(current_chi2 - predicted, 0.0), len(active) - nb, start,
+                 point, seconds)

@@ -28,6 +28,10 @@ def add(sub) -> None:
     p.add_argument("--refinement", type=a.count(1), default=1,
                    help="working mesh level; k+1 corrects its discretisation error")
     p.add_argument("--nu0", type=a.finite, default=0.49, help="assumed initial Poisson ratio")
+    p.add_argument("--noise", type=a.channel_noise, default=None, metavar="CH=SD,...",
+                   help="the instrument's white noise per channel, e.g. stress=0.005,"
+                   "torque=0.02,axial_force=0.3 (kPa, mN mm, mN); held fixed while wander "
+                   "and drift are still fitted (default: estimated from the recordings)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(run=run)
 
@@ -45,6 +49,8 @@ def run(args) -> int:
         if args.recordings:
             raise CLIError("the homogeneous base model reads --budday data, not --recordings")
         check_effects(args.effects, "cube")
+        if args.noise:
+            raise CLIError("--noise applies to --recordings (the Budday curves are averages)")
         res = diagnose_budday(args.budday or None, args.out, nu0=args.nu0)
         say([f"{r}: verdict {v['verdict']}, RMS/noise {v['rms_before']:.2f} -> "
              f"{v['rms_after']:.2f}" for r, v in res.items()] + [f"wrote {args.out}"])
@@ -56,7 +62,8 @@ def run(args) -> int:
     check_effects(args.effects, "fe")
     res = diagnose_recordings(args.recordings, args.specimens, args.out,
                               specimen=args.specimen, refinement=args.refinement,
-                              effects=args.effects, nu0=args.nu0, progress=True)
+                              effects=args.effects, nu0=args.nu0, noise=args.noise,
+                              progress=True)
     if MPI.COMM_WORLD.rank == 0:
         say([f"{n}: verdict {r['verdict']}, RMS/noise {r['rms_before']:.2f} -> "
              f"{r['rms_after']:.2f} ({'reused' if r['reused'] else 'diagnosed in this run'})"

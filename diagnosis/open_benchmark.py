@@ -1,0 +1,267 @@
+"""Open-world benchmark: recordings the diagnosis did not make, scored blind.
+
+Cases come in blocks of 20 (:data:`BLOCK`): 5 controls (rig noise of one kind each, in
+turn white, low-pass filtered, wander, drift, quantised, all of them), 8 single library
+effects (every class in turn), 4 pairs (:data:`diagnosis.open_world.PAIRS`; artefacts with
+a random other) and 3 effects outside the library (:data:`diagnosis.open_world.OUTSIDE`).
+The recordings are made by :mod:`diagnosis.open_world` (converged mesh, sub-stepped time
+integration, the instrument's clock, rig noise); the labels are written apart
+(``labels.json``) and the diagnosis sees the recordings and specimens tables only.
+
+Case ``i`` depends on ``(seed, i)`` only, so a benchmark of 40 cases is the first 40 of
+one of 120 with the same seed, and a run resumes where an earlier one stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from mpi4py import MPI
+
+from brain_fe.io import write_json_atomic, write_text_atomic
+from brain_fe.parallel import as_progress, gather_all
+from brain_fe.solver import ConvergenceError
+from recordings.observations import observations
+from simulators.fe import FESimulator
+
+from .effects import EFFECTS
+from .engine import ENGINE_VERSION, diagnose
+from .open_world import NOISE_KINDS, OUTSIDE, PAIRS, make_case, noise_sd
+
+log = logging.getLogger(__name__)
+
+CONTROL_NOISE = tuple((k,) if k == "white" else ("white", k) for k in NOISE_KINDS) + (
+    NOISE_KINDS,)
+BLOCK = ["control"] * 5 + ["single"] * 8 + ["pair"] * 4 + ["outside"] * 3
+KINDS = ("control", "single", "pair", "outside")
+
+
+def plan(i: int, seed: int) -> tuple[str, list, tuple | None, np.random.Generator]:
+    """Case ``i``: (kind, truth effects, noise kinds or None for a random mix, its rng)."""
+    block, j = divmod(i, len(BLOCK))
+    order = np.random.default_rng([seed, block]).permutation(len(BLOCK))
+    slot = int(order[j])
+    kind = BLOCK[slot]
+    rank_in_kind = block * BLOCK.count(kind) + BLOCK[:slot].count(kind)
+    rng = np.random.default_rng([seed, 1_000_003, i])
+    effects: list = []
+    noise = None
+    if kind == "control":
+        noise = CONTROL_NOISE[rank_in_kind % len(CONTROL_NOISE)]
+    elif kind == "single":
+        effects = [list(EFFECTS)[rank_in_kind % len(EFFECTS)]]
+    elif kind == "pair":
+        a, b = PAIRS[rank_in_kind % len(PAIRS)]
+        if b is None:  # artefacts with any other
+            b = str(rng.choice([e for e in EFFECTS if e != a]))
+        effects = [a, b]
+    else:
+        effects = [OUTSIDE[rank_in_kind % len(OUTSIDE)]]
+    return kind, effects, noise, rng
+
+
+def _case(i: int, seed: int, models: dict):
+    name = f"world{i:03d}"
+    kind, effects, noise, rng = plan(i, seed)
+    for attempt in range(3):  # a truth the FE model cannot follow is drawn again
+        try:
+            return make_case(name, kind, effects, rng, noise_kinds=noise, models=models)
+        except ConvergenceError as exc:
+            if attempt == 2:
+                raise
+            log.warning("%s: truth draw %d not solvable (%s); drawing again", name, attempt,
+                        exc)
+    raise AssertionError("unreachable")
+
+
+def _diagnose(obs, spec, refinement, name) -> dict:
+    sim = FESimulator(obs, spec.radius_mm, spec.height_mm, refinement=refinement)
+    fine = FESimulator(obs, spec.radius_mm, spec.height_mm, refinement=refinement + 1)
+    try:
+        return diagnose(sim, obs, fine_sim=fine).to_json()
+    except RuntimeError as exc:
+        log.error("%s: diagnosis failed: %s", name, exc)
+        return {"verdict": "error", "effects": [], "status": "error", "error": str(exc),
+                "rms_after": float("nan"), "elapsed_s": float("nan")}
+
+
+def rms_over_true_noise(obs: pd.DataFrame, res: dict, sd: dict) -> float:
+    """Residual RMS after modelling against the noise the rig model put in (stationary SD
+    per channel), pooled over rows."""
+    if "rms_by_curve_after" not in res:
+        return float("nan")
+    total, n = 0.0, 0
+    for (c, ch), g in obs.groupby(["curve", "channel"], sort=False):
+        total += len(g) * (res["rms_by_curve_after"][f"{c}/{ch}"]["rms"] / sd[ch]) ** 2
+        n += len(g)
+    return math.sqrt(total / n)
+
+
+def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int = 1,
+                       comm=MPI.COMM_WORLD, progress=None) -> dict:
+    """Generate, diagnose blind and score ``n_cases`` open-world cases, shared among the
+    MPI ranks.  Writes DIR/cases/, labels.json, results.json, summary.json, summary.md."""
+    out = Path(out)
+    config = {"world": "open", "seed": seed, "refinement": refinement,
+              "engine": ENGINE_VERSION}
+    reusable = ((out / "config.json").exists()
+                and json.loads((out / "config.json").read_text()) == config)
+    if comm.rank == 0:
+        (out / "cases").mkdir(parents=True, exist_ok=True)
+        write_json_atomic(out / "config.json", config, indent=1)
+    comm.Barrier()
+    bar = as_progress(progress, None, "open-world benchmark (rank 0's cases)", "case", comm)
+    models: dict = {}
+    mine = []
+    for i in range(comm.rank, n_cases, comm.size):
+        rec, spec_df, case = _case(i, seed, models)
+        label = case.label()
+        csv_path = out / "cases" / f"{case.name}_recordings.csv"
+        result_path = out / "cases" / f"{case.name}_result.json"
+        text = rec.to_csv(index=False)
+        res = None
+        if reusable and result_path.exists() and csv_path.exists() and \
+                csv_path.read_text() == text:
+            res = json.loads(result_path.read_text())
+            log.info("%s: recordings unchanged, diagnosis reused", case.name)
+        write_text_atomic(csv_path, text)
+        write_text_atomic(out / "cases" / f"{case.name}_specimens.csv",
+                          spec_df.to_csv(index=False))
+        obs = observations(rec)  # blind from here on
+        if res is None:
+            res = _diagnose(obs, case.spec, refinement, case.name)
+            write_json_atomic(result_path, res, indent=1)
+        res["rms_after_over_true_noise"] = rms_over_true_noise(obs, res, noise_sd(case.noise))
+        mine.append((case.name, label, res))
+        log.info("%s: %s %s -> %s (%s)", case.name, label["kind"], label["expected"],
+                 res["verdict"], res["status"])
+        bar.update(1, f"{case.name} {label['expected']} -> {res['verdict']}")
+    bar.close()
+    allres = sorted(gather_all(comm, mine), key=lambda x: x[0])
+    labels = {n: lab for n, lab, _ in allres}
+    results = {n: r for n, _, r in allres}
+    summary = score(labels, results)
+    if comm.rank == 0:
+        write_json_atomic(out / "labels.json", labels, indent=1)
+        write_json_atomic(out / "results.json", results, indent=1)
+        write_json_atomic(out / "summary.json", summary, indent=1)
+        write_text_atomic(out / "summary.md", summary_markdown(summary))
+    return summary
+
+
+def _correct(label: dict, res: dict) -> bool:
+    return res["verdict"] == label["expected"]
+
+
+def _named_within_ambiguity(label: dict, res: dict) -> bool:
+    """The verdict is right up to a pair the diagnosis itself reported it cannot tell
+    apart with these tests."""
+    if _correct(label, res):
+        return True
+    swaps = [set(a["effects"]) for a in res.get("ambiguous", [])]
+    want, got = set(label["effects"]), set(res.get("effects", []))
+    return len(want ^ got) == 2 and (want ^ got) in swaps
+
+
+def score(labels: dict, results: dict) -> dict:
+    """Scores per kind, the confusion matrices (expected x verdict, kind x status), RMS."""
+    rows = []
+    for n in sorted(labels):
+        lab, r = labels[n], results[n]
+        rows.append({"case": n, "kind": lab["kind"], "expected": lab["expected"],
+                     "verdict": r["verdict"], "status": r["status"],
+                     "correct": _correct(lab, r),
+                     "within_ambiguity": _named_within_ambiguity(lab, r),
+                     "rms_before": r.get("rms_before", float("nan")),
+                     "rms_after": r.get("rms_after", float("nan")),
+                     "rms_after_over_true_noise": r.get("rms_after_over_true_noise",
+                                                        float("nan")),
+                     "noise_kinds": "+".join(lab["noise_kinds"]),
+                     "misfit": max(lab["base_misfit_over_noise"].values(), default=0.0),
+                     "elapsed_s": r.get("elapsed_s", float("nan"))})
+    df = pd.DataFrame(rows)
+    out: dict = {"cases": len(df), "by_case": rows}
+    for kind in KINDS:
+        g = df[df["kind"] == kind]
+        out[kind] = {"cases": len(g), "correct": int(g["correct"].sum()),
+                     "within_ambiguity": int(g["within_ambiguity"].sum())}
+    out["control"]["false_alarms"] = int((df[df["kind"] == "control"]["verdict"] != "none"
+                                          ).sum())
+    o = df[df["kind"] == "outside"]
+    out["outside"]["not_explained"] = int((o["status"] != "explained").sum())
+    explained = df[df["status"] == "explained"]
+    out["explained_rms_over_true_noise_max"] = float(
+        explained["rms_after_over_true_noise"].max()) if len(explained) else float("nan")
+    out["explained_rms_over_true_noise_median"] = float(
+        explained["rms_after_over_true_noise"].median()) if len(explained) else float("nan")
+    out["explained_above_1.2"] = sorted(explained.loc[
+        explained["rms_after_over_true_noise"] > 1.2, "case"])
+    out["elapsed_s_median"] = float(df["elapsed_s"].median()) if len(df) else float("nan")
+    out["confusion"] = pd.crosstab(df["expected"], df["verdict"]).to_dict(orient="index") \
+        if len(df) else {}
+    out["status_by_kind"] = pd.crosstab(df["kind"], df["status"]).to_dict(orient="index") \
+        if len(df) else {}
+    return out
+
+
+def _pct(a: int, b: int) -> str:
+    return f"{a}/{b} ({a / b:.0%})" if b else "-"
+
+
+def _table(matrix: dict, corner: str) -> list[str]:
+    cols = sorted({c for row in matrix.values() for c in row})
+    lines = [f"| {corner} | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+    for k in sorted(matrix):
+        lines.append(f"| {k} | " + " | ".join(str(matrix[k].get(c, 0) or "")
+                                              for c in cols) + " |")
+    return lines
+
+
+def summary_markdown(s: dict) -> str:
+    c, si, p, o = (s[k] for k in KINDS)
+    lines = ["# Open-world diagnosis benchmark", "",
+             f"- cases: {s['cases']}",
+             f"- controls, no false alarm: {_pct(c['cases'] - c['false_alarms'], c['cases'])}",
+             f"- single effects named: {_pct(si['correct'], si['cases'])} (within a reported "
+             f"ambiguity: {_pct(si['within_ambiguity'], si['cases'])})",
+             f"- pairs, exact set: {_pct(p['correct'], p['cases'])} (within a reported "
+             f"ambiguity: {_pct(p['within_ambiguity'], p['cases'])})",
+             f"- outside the library, `unexplained`: {_pct(o['correct'], o['cases'])}; "
+             f"not `explained`: {_pct(o['not_explained'], o['cases'])}",
+             f"- explained cases, RMS after / true noise: median "
+             f"{s['explained_rms_over_true_noise_median']:.2f}, max "
+             f"{s['explained_rms_over_true_noise_max']:.2f}"
+             + (f" (above 1.2: {', '.join(s['explained_above_1.2'])})"
+                if s["explained_above_1.2"] else ""),
+             f"- diagnosis time per case (median, one rank): {s['elapsed_s_median']:.0f} s",
+             "", "Outcomes (rows: the right answer, columns: verdict)", ""]
+    lines += _table(s["confusion"], "truth \\ verdict")
+    lines += ["", "Status by kind of case", ""]
+    lines += _table(s["status_by_kind"], "kind \\ status")
+    lines += ["", "Every case", "",
+              "| case | kind | truth | verdict | status | noise | misfit | RMS before | "
+              "RMS after | after / true noise |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in s["by_case"]:
+        lines.append(f"| {r['case']} | {r['kind']} | {r['expected']} | {r['verdict']} | "
+                     f"{r['status']} | {r['noise_kinds']} | {r['misfit']:.1f} | "
+                     f"{r['rms_before']:.2f} | {r['rms_after']:.2f} | "
+                     f"{r['rms_after_over_true_noise']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def rescore_open(out: str | Path) -> dict:
+    """Score a finished open-world benchmark directory again (labels.json, results.json)."""
+    out = Path(out)
+    need = [out / n for n in ("labels.json", "results.json")]
+    missing = [str(p) for p in need if not p.exists()]
+    if missing:
+        raise ValueError(f"{missing[0]}: not found (not a benchmark directory?)")
+    summary = score(json.loads(need[0].read_text()), json.loads(need[1].read_text()))
+    write_json_atomic(out / "summary.json", summary, indent=1)
+    write_text_atomic(out / "summary.md", summary_markdown(summary))
+    return summary

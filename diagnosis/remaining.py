@@ -1,0 +1,126 @@
+r"""What a model leaves unexplained, told apart from the rig's noise.
+
+Two tests on the residual of the final model, whitened with the noise model estimated from
+it (white noise, wander correlated over at most half a ramp, drift from the tare):
+
+* **located**: the protocol's segments (:mod:`diagnosis.locate`) with chi-square and runs
+  tests on the whitened residual, which is standard white noise where the model is right;
+* **reproducible**: a generic smooth misfit, the same at every repetition of a ramp (a
+  piecewise-linear function of the control value per curve, channel and branch, shared by
+  all cycles; with one cycle, shared by loading and unloading), fitted to the whitened
+  residual.  Wander is independent between repetitions, so it cannot make this term
+  significant; a systematic misfit the model lacks is the same every time and does.
+  Significant when its likelihood-ratio statistic has p < ``alpha`` and beats BIC by the
+  margin.  Data without repetitions (loading only, one pass) cannot be tested this way,
+  and the report says so;
+* **trend**: the stiffness changing with time within a test of several cycles (the
+  prediction scaled by time, one term per curve), which no library effect does.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from . import locate as loc
+from .series import neutral_of
+
+KNOTS = 5  # knots of the generic misfit per curve/channel/branch (plus the neutral value)
+
+
+def _hat_basis(x: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """Piecewise-linear hat functions on ``knots`` evaluated at ``x`` (n x len(knots))."""
+    B = np.zeros((len(x), len(knots)))
+    for j, k in enumerate(knots):
+        left = knots[j - 1] if j > 0 else None
+        right = knots[j + 1] if j + 1 < len(knots) else None
+        b = np.zeros(len(x))
+        if left is not None:
+            m = (x >= left) & (x <= k)
+            b[m] = (x[m] - left) / (k - left)
+        if right is not None:
+            m = (x >= k) & (x <= right)
+            b[m] = np.maximum(b[m], (right - x[m]) / (right - k))
+        if left is None:
+            b[x <= k] = np.maximum(b[x <= k], 1.0)
+        if right is None:
+            b[x >= k] = np.maximum(b[x >= k], 1.0)
+        B[:, j] = b
+    return B
+
+
+def reproducible_basis(obs: pd.DataFrame) -> tuple[np.ndarray, str]:
+    """Columns of the generic reproducible misfit, and how it repeats (``cycles``,
+    ``branches`` or ``none``)."""
+    cols, how = [], "none"
+    for (curve, _), g in obs.groupby(["curve", "channel"], sort=False):
+        cycles = g["cycle"].nunique()
+        branches = set(g["branch"]) - {"hold"}
+        if cycles >= 2:
+            groups, how = list(g.groupby("branch", sort=False)), "cycles"
+        elif len(branches) >= 2:
+            groups = [(None, g)]
+            how = how if how == "cycles" else "branches"
+        else:
+            continue
+        for _, gg in groups:
+            x = gg["control"].to_numpy(float)
+            knots = np.unique(np.r_[np.linspace(x.min(), x.max(), KNOTS), neutral_of(curve)])
+            knots = knots[(knots >= x.min()) & (knots <= x.max())]
+            if len(knots) < 2:
+                continue
+            col = np.zeros((len(obs), len(knots)))
+            col[gg.index.to_numpy()] = _hat_basis(x, knots)
+            cols.append(col)
+    return (np.hstack(cols) if cols else np.zeros((len(obs), 0))), how
+
+
+def trend_basis(obs: pd.DataFrame, prediction: np.ndarray) -> np.ndarray:
+    """One column per curve: the model's prediction times time (centred, in units of the
+    curve's duration): the response of a specimen whose stiffness drifts during the test
+    (tissue degrading, drying, warming up).  No effect of the library changes with time
+    alone, so a trend the final model leaves is a misfit, whatever its cause."""
+    t = obs["time_s"].to_numpy(float) if "time_s" in obs else np.full(len(obs), np.nan)
+    cols = []
+    for _, g in obs.groupby("curve", sort=False):
+        rows = g.index.to_numpy()
+        tt = t[rows]
+        if g["cycle"].nunique() < 2 or not np.isfinite(tt).all() or np.ptp(tt) <= 0:
+            continue
+        col = np.zeros(len(obs))
+        col[rows] = prediction[rows] * (tt - tt.mean()) / np.ptp(tt)
+        cols.append(col)
+    return np.column_stack(cols) if cols else np.zeros((len(obs), 0))
+
+
+def _lrt(Bw: np.ndarray, z: np.ndarray, n: int, alpha: float, bic_margin: float) -> dict:
+    coef, _, rank, _ = np.linalg.lstsq(Bw, z, rcond=None)
+    gain = float(z @ z - np.sum((z - Bw @ coef) ** 2))
+    p = float(stats.chi2.sf(gain, rank)) if rank else 1.0
+    return {"gain": gain, "dof": int(rank), "p_value": p, "significant": bool(
+        rank and p < alpha and gain > rank * math.log(n) + bic_margin)}
+
+
+def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 1e-3,
+              bic_margin: float = 10.0, prediction: np.ndarray | None = None) -> dict:
+    """The tests on ``residual`` (recorded minus model) under ``noise``; with the model's
+    ``prediction``, also whether the stiffness trends with time (:func:`trend_basis`)."""
+    obs = obs.reset_index(drop=True)
+    z = noise.whiten(np.asarray(residual, float))
+    table = loc.locate(obs, z, 1.0, sigma_dof=np.inf)
+    located = loc.summary(table)["located"]
+    B, how = reproducible_basis(obs)
+    rep = {"repeats": how, "gain": 0.0, "dof": 0, "p_value": 1.0, "significant": False}
+    if B.shape[1]:
+        rep.update(_lrt(noise.whiten_jacobian(B), z, len(obs), alpha, bic_margin))
+    trend = {"gain": 0.0, "dof": 0, "p_value": 1.0, "significant": False}
+    if prediction is not None:
+        T = trend_basis(obs, np.asarray(prediction, float))
+        if T.shape[1]:
+            trend = _lrt(noise.whiten_jacobian(T), z, len(obs), alpha, bic_margin)
+    return {"located": located, "reproducible": rep, "trend": trend,
+            "systematic": bool(located) or rep["significant"] or trend["significant"],
+            "table": table}

@@ -1,0 +1,175 @@
+"""Which effects earn their place: forward selection with backward re-tests.
+
+One *round* adds at most one effect to the current model (the base, then base + the
+effects selected so far):
+
+1. every remaining candidate is scored at the current fit (:mod:`diagnosis.screen`) and
+   those that could matter are fitted together with the current model's parameters;
+2. the noise model (:mod:`diagnosis.noise`) is estimated from the residual of the best of
+   these fits, the closest thing to pure noise, and every comparison of the round is made
+   under it: with whitened residuals, chi2 = z.z, the likelihood-ratio statistic
+   chi2_current - chi2_candidate ~ chi2(k) and BIC = chi2 + k ln n;
+3. a candidate is *significant* when p < alpha / m (Bonferroni over the m candidates) and
+   its BIC beats the current model's by more than the margin; the lowest-BIC significant one
+   is added, and every effect added before is re-tested in its presence (refitted without
+   it; dropped when it no longer earns its place).
+
+The rounds stop when nothing is significant or ``max_effects`` are in.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from .fitting import Fit, fit
+from .screen import data_scales, design, score
+
+log = logging.getLogger(__name__)
+
+SCREEN_FRACTION = 0.25  # fit a candidate whose score reaches this share of what it needs
+# Effects that follow the recorded path (history) cost about this many elastic evaluations
+HISTORY = ("viscoelastic", "mullins")
+HISTORY_COST = 4.0
+RANKING_NFEV = 8  # evaluations of a competitor's fit (the leader's fit is then completed)
+# Effects that cannot be combined (they model the same parameters)
+EXCLUSIVE = {frozenset({"artefacts", "glued_ends"})}
+
+
+@dataclass
+class Context:
+    """What every round needs: the problem, its rules and how to share work."""
+
+    sim: object
+    obs: object
+    weights: np.ndarray  # sigma per row for the fits (diagonal)
+    lib: dict
+    base_names: list
+    alpha: float
+    bic_margin: float
+    max_nfev: int
+    share: object  # share(items, work, cost) -> results (MPI-aware)
+    stated: dict | None = None
+
+    def chi2(self, noise, f: Fit) -> float:
+        z = noise.whiten(f.prediction - self.obs["value"].to_numpy(float))
+        return float(z @ z)
+
+    def needed(self, k: int, m: int) -> float:
+        """The chi-square reduction k extra parameters need to be significant."""
+        return max(float(stats.chi2.isf(self.alpha / m, k)),
+                   k * math.log(len(self.obs)) + self.bic_margin)
+
+
+@dataclass
+class Round:
+    current: list  # effects of the model the round starts from
+    scores: dict  # effect -> Score
+    fits: dict  # effect -> Fit of current + effect
+    table: list  # per candidate: chi2, lrt, p, bic, significant ...
+    added: str | None = None
+    dropped: list = field(default_factory=list)
+    noise: object = None
+
+
+def _names(ctx: Context, effects: list) -> list:
+    return list(ctx.base_names) + [n for e in effects for n in ctx.lib[e].names]
+
+
+def _fit(ctx: Context, start: dict, effects: list, label: str, nfev: int):
+    try:
+        return fit(ctx.sim, ctx.obs, ctx.weights, start, _names(ctx, effects), effect=label,
+                   max_nfev=nfev, effect_def=Union(ctx.lib, effects))
+    except Exception as exc:  # a model that cannot follow the data is reported, not fatal
+        log.warning("fit of %s failed: %s", label, exc)
+        return None
+
+
+class Union:
+    """The bounds of several effects' parameters, as one effect for :func:`fit`."""
+
+    def __init__(self, lib, effects):
+        self._by_name = {n: lib[e] for e in effects for n in lib[e].names}
+
+    def bounds(self, name):
+        return self._by_name[name].bounds(name)
+
+
+def run_round(ctx: Context, current: Fit, current_effects: list, candidates: list,
+              J_current: np.ndarray, progress=None, first: Round | None = None) -> Round:
+    """Score and fit every candidate added to the current model.  After the first round
+    (``first``), only the candidates it fitted are considered, each at the design point
+    that scored best there: an effect with no score at the base fit is not unmasked by
+    another effect in practice, and every later round follows the recorded path of a
+    history model, where a score costs several seconds."""
+    obs, sim = ctx.obs, ctx.sim
+    names = _names(ctx, current_effects)
+    if first is None:
+        geometry = getattr(sim, "geometry", None)
+        scales = data_scales(obs, current.values,
+                             geometry.height_mm if geometry is not None else 5.0)
+        points = [(e, p) for e in candidates for p in design(ctx.lib[e], sim.nu0, scales)]
+    else:
+        candidates = [e for e in candidates if e in first.fits]
+        points = [(e, first.scores[e].point) for e in candidates]
+
+    def one_score(item):
+        try:
+            return score(sim, obs, ctx.weights, current, ctx.lib[item[0]], item[1], names,
+                         J_current)
+        except Exception as exc:  # a model that cannot be solved there scores nothing
+            log.warning("score of %s at %s failed: %s", item[0], item[1], exc)
+            return None
+
+    scored = ctx.share(points, one_score,
+                       lambda it: HISTORY_COST if it[0] in HISTORY else 1.0)
+    best: dict = {}
+    for s in scored:
+        if s is not None and (s.effect not in best or s.lm > best[s.effect].lm):
+            best[s.effect] = s
+    m = max(len(candidates), 1)
+    to_fit = [e for e in candidates if e in best and best[e].lm >= SCREEN_FRACTION
+              * ctx.needed(len(ctx.lib[e].names), m)]
+    if progress:
+        progress(f"+{'+'.join(current_effects) or 'base'}: fitting {', '.join(to_fit) or '-'}")
+    label = {e: "+".join([*current_effects, e]) for e in to_fit}
+    results = ctx.share(to_fit, lambda e: _fit(ctx, best[e].start, [*current_effects, e],
+                                               label[e], RANKING_NFEV),
+                        lambda e: best[e].seconds)
+    fits = {e: f for e, f in zip(to_fit, results, strict=True) if f is not None}
+    return Round(list(current_effects), best, fits, [])
+
+
+def compare(ctx: Context, rnd: Round, current: Fit, m: int, noise) -> list:
+    """The round's table under ``noise``: chi2, LRT p, BIC and significance per fit."""
+    c0 = ctx.chi2(noise, current)
+    n = len(ctx.obs)
+    table = []
+    for e, f in rnd.fits.items():
+        k = len(ctx.lib[e].names)
+        c1 = ctx.chi2(noise, f)
+        lrt = c0 - c1
+        p = float(stats.chi2.sf(max(lrt, 0.0), k))
+        dbic = (c1 + (current.k + k) * math.log(n)) - (c0 + current.k * math.log(n))
+        table.append({"effect": e, "chi2": c1, "lrt": lrt, "p_value": p, "delta_bic": dbic,
+                      "significant": bool(p < ctx.alpha / m and -dbic > ctx.bic_margin),
+                      "score": rnd.scores[e].lm,
+                      "parameters": {str(q): float(f.values[q]) for q in ctx.lib[e].names},
+                      "stderr": {str(q): float(f.stderr.get(q, float("nan")))
+                                 for q in ctx.lib[e].names}})
+    for e, s in rnd.scores.items():
+        if e not in rnd.fits:
+            table.append({"effect": e, "chi2": float("nan"), "lrt": float("nan"),
+                          "p_value": float("nan"), "delta_bic": float("nan"),
+                          "significant": False, "score": s.lm, "screened_out": True,
+                          "parameters": {}, "stderr": {}})
+    table.sort(key=lambda r: (math.isnan(r["delta_bic"]), r["delta_bic"], -r["score"]))
+    return table
+
+
+def compatible(effect: str, chosen: list) -> bool:
+    return not any(frozenset({effect, c}) in EXCLUSIVE for c in chosen)
