@@ -234,6 +234,7 @@ class ForwardModel:
         x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         if self.state is not None:
             self.state.reset()
+        self.newton.forget()  # a run never depends on the runs before it
         if names:
             self._sens.start(names)
         steps = protocol.steps()

@@ -26,10 +26,12 @@ class NewtonReport:
     reason: str = ""
 
 
-def _direct_solver_type(comm) -> str:
-    """MUMPS in parallel; PETSc's own LU on one rank, where it factorises the small systems
-    of the axisymmetric model ~15 % faster than MUMPS (whose per-call set-up dominates)."""
-    return "mumps" if comm.size > 1 else "petsc"
+def _direct_solver_type(comm, tdim: int = 2) -> str:
+    """MUMPS in parallel and in 3D; PETSc's own LU for the small 2D (axisymmetric) systems
+    on one rank, where it factorises ~15 % faster than MUMPS (whose per-call set-up
+    dominates).  PETSc's LU has no fill-reducing ordering worth the name for a 3D mesh:
+    a refinement-2 cylinder took minutes per factorisation instead of about a second."""
+    return "petsc" if comm.size == 1 and tdim <= 2 else "mumps"
 
 
 class NewtonSolver:
@@ -59,7 +61,7 @@ class NewtonSolver:
         self.ksp.setType("preonly")
         pc = self.ksp.getPC()
         pc.setType("lu")
-        pc.setFactorSolverType(_direct_solver_type(comm))
+        pc.setFactorSolverType(_direct_solver_type(comm, u.function_space.mesh.topology.dim))
         self.ksp.setOperators(self.A)
         self._factorised = (-1, 0)  # (solve, iteration) the factorisation was made at
         self._state = self._iteration = 0
@@ -89,6 +91,11 @@ class NewtonSolver:
         self.ksp.setUp()
         self._factorised = (self._state, self._iteration)
         self.factorisations += 1
+
+    def forget(self) -> None:
+        """Drop the factorisation: the next solve factorises afresh, so that a run's
+        results do not depend on the runs before it (bit for bit)."""
+        self._factorised = (-1, 0)
 
     def ensure_factorised(self) -> None:
         """Make the factorisation belong to the current (converged) state.
