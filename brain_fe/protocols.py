@@ -146,6 +146,39 @@ def make(test: str, amplitude: float | None = None, **kw) -> Protocol:
     return (compression_tension if test == COMPRESSION_TENSION else torsion)(a, **kw)
 
 
+def _turning_points(test: str, amplitude: float, t, x, rate: float
+                    ) -> list[tuple[int, tuple[float, float]]]:
+    """The protocol's turning points that the recorded samples straddle, as (position in
+    the list of recorded points, (time, control value)): an instrument samples at its own
+    clock, so the extreme of a ramp (where history-dependent models decide their damage
+    and their relaxation turns) lies between two samples.  A turning point is inserted only
+    where the path reverses within one sampling interval of the protocol's extreme
+    (``1 +- A`` in compression/tension, ``A`` and ``0`` in torsion); its time follows from
+    the rate."""
+    if test == COMPRESSION_TENSION:
+        high, low = 1.0 + amplitude, 1.0 - amplitude
+    else:
+        high, low = amplitude, 0.0
+    out = []
+    dx = np.diff(x)
+    for i in range(1, len(x) - 1):
+        before, after = dx[i - 1], dx[i]
+        if before * after >= 0:
+            continue
+        ext = high if before > 0 else low
+        gap = (ext - x[i]) * np.sign(before)  # how far the extreme lies beyond sample i
+        reach = max(abs(before), abs(after))
+        if not (1e-12 < gap <= reach * (1 + 1e-9)) or rate <= 0:
+            continue
+        t_turn = t[i - 1] + abs(ext - x[i - 1]) / rate
+        if t_turn < t[i]:  # sample i was taken on the way back: the turn came before it
+            out.append((i, (float(t_turn), float(ext))))
+        else:
+            t_turn = min(t[i] + gap / rate, t[i + 1])
+            out.append((i + 1, (float(t_turn), float(ext))))
+    return out
+
+
 @dataclass
 class RecordedPath:
     """The recorded (time, control) points of one test as a protocol for the forward model:
@@ -180,6 +213,10 @@ class RecordedPath:
         moving = (dt > 0) & (np.abs(np.diff(x)) > 0)
         rate = float(np.median(np.abs(np.diff(x))[moving] / dt[moving])) if moving.any() \
             else default_rate
+        for pos, (t_turn, ext) in reversed(_turning_points(test, amplitude, t, x, rate)):
+            prev = steps[pos - 1]  # the turning point ends the ramp it closes
+            steps.insert(pos, Step(t_turn, prev.cycle, prev.branch, ext))
+            index[index >= pos] += 1
         neutral = NEUTRAL[test]
         if not np.isclose(x[0], neutral):  # start from the undeformed state
             steps.insert(0, Step(float(t[0] - abs(x[0] - neutral) / rate), 1, LOADING,
