@@ -8,6 +8,7 @@ from . import (
     brain_bank,
     diagnose,
     identify,
+    import_exports,
     reproduce,
     sample,
     simulate,
@@ -15,4 +16,4 @@ from . import (
 )
 
 COMMANDS = (simulate, sample, train, identify, brain_bank, reproduce, diagnose,
-            benchmark_diagnosis)
+            benchmark_diagnosis, import_exports)
