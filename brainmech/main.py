@@ -41,6 +41,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _abort_other_ranks(code: int) -> None:
+    """Under ``mpirun``, a failure of one rank's own work (a solve, a file) ends the whole
+    run: the other ranks would otherwise wait for it forever.  Errors in the inputs are
+    found by every rank alike and end each of them cleanly, without this."""
+    mpi = sys.modules.get("mpi4py.MPI")
+    if mpi is not None and mpi.Is_initialized() and not mpi.Is_finalized() \
+            and mpi.COMM_WORLD.size > 1:
+        sys.stderr.flush()
+        mpi.COMM_WORLD.Abort(code)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -56,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     except (CLIError, ValueError, ConvergenceError, OSError) as exc:
         msg = " ".join(str(exc).splitlines()) or type(exc).__name__
         print(f"brainmech {args.command}: error: {msg}", file=sys.stderr)
+        if isinstance(exc, (ConvergenceError, OSError)):
+            _abort_other_ranks(1)
         return 1
     except KeyboardInterrupt:
         print("brainmech: interrupted", file=sys.stderr)
