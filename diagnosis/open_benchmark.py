@@ -27,6 +27,7 @@ from brain_fe.io import write_json_atomic, write_text_atomic
 from brain_fe.parallel import as_progress, gather_all
 from brain_fe.solver import ConvergenceError
 from recordings.observations import observations
+from recordings.tables import read_recordings, read_specimens
 from simulators.fe import FESimulator
 
 from .effects import EFFECTS
@@ -114,6 +115,7 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
                 and json.loads((out / "config.json").read_text()) == config)
     if comm.rank == 0:
         (out / "cases").mkdir(parents=True, exist_ok=True)
+        (out / "labels").mkdir(exist_ok=True)
         write_json_atomic(out / "config.json", config, indent=1)
     comm.Barrier()
     bar = as_progress(progress, None, "open-world benchmark (rank 0's cases)", "case", comm)
@@ -126,7 +128,10 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
             skipped.append(f"world{i:03d}")
             continue
         rec, spec_df, case = made
-        label = case.label()
+        label = dict(case.label(), noise_sd=noise_sd(case.noise))
+        # the label of every case as soon as it exists (apart from what the diagnosis
+        # reads), so that a benchmark stopped early can be scored (--rescore)
+        write_json_atomic(out / "labels" / f"{case.name}.json", label, indent=1)
         csv_path = out / "cases" / f"{case.name}_recordings.csv"
         result_path = out / "cases" / f"{case.name}_result.json"
         text = rec.to_csv(index=False)
@@ -264,13 +269,29 @@ def summary_markdown(s: dict) -> str:
 
 
 def rescore_open(out: str | Path) -> dict:
-    """Score a finished open-world benchmark directory again (labels.json, results.json)."""
+    """Score an open-world benchmark directory again: every case with a label
+    (``labels/``) and a blind result (``cases/``), also of a run stopped early."""
     out = Path(out)
-    need = [out / n for n in ("labels.json", "results.json")]
-    missing = [str(p) for p in need if not p.exists()]
-    if missing:
-        raise ValueError(f"{missing[0]}: not found (not a benchmark directory?)")
-    summary = score(json.loads(need[0].read_text()), json.loads(need[1].read_text()))
+    if not (out / "labels").is_dir():
+        raise ValueError(f"{out / 'labels'}: not found (not an open-world benchmark "
+                         "directory?)")
+    labels, results = {}, {}
+    for p in sorted((out / "labels").glob("world*.json")):
+        name = p.stem
+        res_path = out / "cases" / f"{name}_result.json"
+        if not res_path.exists():
+            continue
+        labels[name] = json.loads(p.read_text())
+        res = json.loads(res_path.read_text())
+        spec = read_specimens(out / "cases" / f"{name}_specimens.csv")
+        obs = observations(read_recordings(out / "cases" / f"{name}_recordings.csv", spec))
+        res["rms_after_over_true_noise"] = rms_over_true_noise(obs, res,
+                                                               labels[name]["noise_sd"])
+        results[name] = res
+    if not labels:
+        raise ValueError(f"{out}: no case has both a label and a result yet")
+    summary = score(labels, results)
+    summary["left_out"] = []
     write_json_atomic(out / "summary.json", summary, indent=1)
     write_text_atomic(out / "summary.md", summary_markdown(summary))
     return summary
