@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 from mpi4py import MPI
 
-from diagnosis.open_benchmark import plan, run_open_benchmark
+from diagnosis.open_benchmark import plan, rescore_open, run_open_benchmark
 from diagnosis.open_world import OUTSIDE, draw_specimen, record_times
 
 
@@ -52,3 +52,7 @@ def test_open_world_two_cases_blind(tmp_path):
     rec = pd.read_csv(tmp_path / "cases" / "world001_recordings.csv")
     assert rec["time_s"].diff().dropna().gt(0).any()
     assert "Outcomes" in (tmp_path / "summary.md").read_text()
+    again = rescore_open(tmp_path)  # from the per-case labels and results on disk
+    assert again["confusion"] == s["confusion"]
+    assert again["explained_rms_over_true_noise_max"] == pytest.approx(
+        s["explained_rms_over_true_noise_max"], rel=1e-9)
