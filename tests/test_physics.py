@@ -417,7 +417,8 @@ def test_axial_fibres_slip_against_homogeneous_reference():
     with slip ends the state is homogeneous, so the nominal stress equals the root-solved
     uniaxial reference with the fibre energy added, in tension (fibres stretched) and in
     compression (fibres slack: the plain Ogden reference) to 1e-3 relative; the FE
-    simulator of the diagnosis builds the same law from the parameter names alone (1e-12);
+    simulator of the diagnosis builds the same law from the parameter names alone (to the
+    Newton tolerance, 1e-9);
     d/d fibre_k1 by direct differentiation matches central differences (1e-5)."""
     import pandas as pd
     from references import homogeneous_uniaxial_fibres
@@ -456,4 +457,6 @@ def test_axial_fibres_slip_against_homogeneous_reference():
     sim = FESimulator(obs, 4.0, 5.0, geometry=g, ends="slip", path="recorded")
     y = sim.predict({"mu_0": MU, "alpha_0": ALPHA, "kappa": KAPPA, "fibre_k1": 2.0,
                      "fibre_k2": 5.0}).y
-    np.testing.assert_allclose(y, df.nominal_stress_kPa, rtol=1e-12, atol=1e-14)
+    # both runs stop at a residual below the Newton tolerance (1e-10 mN), so they agree to
+    # that level, not to round-off (the unloaded state's stress is ~1e-11 kPa either way)
+    np.testing.assert_allclose(y, df.nominal_stress_kPa, rtol=1e-9, atol=1e-9)
