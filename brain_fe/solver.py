@@ -26,12 +26,11 @@ class NewtonReport:
     reason: str = ""
 
 
-def _direct_solver_type(comm, tdim: int = 2) -> str:
-    """MUMPS (with pivoting) everywhere.  PETSc's own LU factorised the small 2D systems on
-    one rank ~15 % faster, but it does not pivot (a viscoelastic run with holds stopped
-    with a zero pivot, KSP reason -11) and has no useful fill-reducing ordering in 3D (a
-    refinement-2 cylinder took minutes per factorisation instead of about a second)."""
-    return "mumps"
+# MUMPS (with pivoting) on any number of ranks.  PETSc's own LU factorised the small 2D
+# systems on one rank ~15 % faster, but it does not pivot (a viscoelastic run with holds
+# stopped with a zero pivot, KSP reason -11) and has no useful fill-reducing ordering in
+# 3D (a refinement-2 cylinder took minutes per factorisation instead of about a second).
+DIRECT_SOLVER = "mumps"
 
 
 class NewtonSolver:
@@ -40,7 +39,7 @@ class NewtonSolver:
 
     Converged when the free-dof residual norm drops below ``atol`` (a force, mN) or below
     ``rtol`` times the first residual of the step. The Jacobian is factorised by LU
-    (MUMPS when PETSc has it, required in parallel); the symbolic factorisation is kept
+    (MUMPS, :data:`DIRECT_SOLVER`); the symbolic factorisation is kept
     across iterations because the sparsity pattern never changes.
     """
 
@@ -61,21 +60,19 @@ class NewtonSolver:
         self.ksp.setType("preonly")
         pc = self.ksp.getPC()
         pc.setType("lu")
-        pc.setFactorSolverType(_direct_solver_type(comm, u.function_space.mesh.topology.dim))
+        pc.setFactorSolverType(DIRECT_SOLVER)
         self.ksp.setOperators(self.A)
         self._factorised = (-1, 0)  # (solve, iteration) the factorisation was made at
         self._state = self._iteration = 0
         self.factorisations = 0
 
-    def assemble_residual(self, *, with_bcs: bool = True, lift: bool = True):
-        """Residual vector; with ``with_bcs`` the Dirichlet rows hold -(g - u).  ``lift``:
-        add the Jacobian's action on the Dirichlet change (needed only while u does not
-        hold the Dirichlet values; a Newton update from such a residual sets them)."""
+    def assemble_residual(self, *, with_bcs: bool = True):
+        """Residual vector; with ``with_bcs`` the Dirichlet rows hold -(g - u)."""
         x = _compat.petsc_vec(self.u)
         with self.b.localForm() as bl:
             bl.set(0.0)
         fem_petsc.assemble_vector(self.b, self.L)
-        if with_bcs and lift:
+        if with_bcs:
             _compat.apply_lifting(self.b, self.a, self.bcs, x, -1.0)
         self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         if with_bcs:
@@ -121,8 +118,8 @@ class NewtonSolver:
         stale_step = False  # the last update was made with an old factorisation
         for it in range(self.max_iterations + 1):
             self._iteration = it
-            # lifting every iteration: under MPI (DOLFINx 0.9) the ghosts of u need not hold
-            # the Dirichlet values after an update, and skipping it broke the Maxwell test
+            # lifted at every iteration: under MPI (DOLFINx 0.9) the ghosts of u need not
+            # hold the Dirichlet values after an update
             b = self.assemble_residual()
             rnorm = b.norm()
             redo = stale_step and not (rnorm < prev)  # also when rnorm is not finite

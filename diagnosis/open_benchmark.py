@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +29,7 @@ from recordings.observations import observations
 from recordings.tables import read_recordings, read_specimens
 from simulators.fe import FESimulator
 
+from .benchmark import rms_over_true_noise
 from .effects import EFFECTS
 from .engine import ENGINE_VERSION, diagnose
 from .open_world import NOISE_KINDS, OUTSIDE, PAIRS, make_case, noise_sd
@@ -92,16 +92,9 @@ def _diagnose(obs, spec, refinement, name) -> dict:
                 "rms_after": float("nan"), "elapsed_s": float("nan")}
 
 
-def rms_over_true_noise(obs: pd.DataFrame, res: dict, sd: dict) -> float:
-    """Residual RMS after modelling against the noise the rig model put in (stationary SD
-    per channel), pooled over rows."""
-    if "rms_by_curve_after" not in res:
-        return float("nan")
-    total, n = 0.0, 0
-    for (c, ch), g in obs.groupby(["curve", "channel"], sort=False):
-        total += len(g) * (res["rms_by_curve_after"][f"{c}/{ch}"]["rms"] / sd[ch]) ** 2
-        n += len(g)
-    return math.sqrt(total / n)
+def _rms_over_rig_noise(obs: pd.DataFrame, res: dict, sd: dict) -> float:
+    """The open world's noise: the stationary SD the rig model put in, per channel."""
+    return rms_over_true_noise(obs, res, lambda ch, v: sd[ch])
 
 
 def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int = 1,
@@ -147,7 +140,7 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
         if res is None:
             res = _diagnose(obs, case.spec, refinement, case.name)
             write_json_atomic(result_path, res, indent=1)
-        res["rms_after_over_true_noise"] = rms_over_true_noise(obs, res, noise_sd(case.noise))
+        res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, noise_sd(case.noise))
         mine.append((case.name, label, res))
         log.info("%s: %s %s -> %s (%s)", case.name, label["kind"], label["expected"],
                  res["verdict"], res["status"])
@@ -285,7 +278,7 @@ def rescore_open(out: str | Path) -> dict:
         res = json.loads(res_path.read_text())
         spec = read_specimens(out / "cases" / f"{name}_specimens.csv")
         obs = observations(read_recordings(out / "cases" / f"{name}_recordings.csv", spec))
-        res["rms_after_over_true_noise"] = rms_over_true_noise(obs, res,
+        res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res,
                                                                labels[name]["noise_sd"])
         results[name] = res
     if not labels:

@@ -49,7 +49,6 @@ from brain_fe.model import ForwardModel
 from brain_fe.parameters import Param
 from brain_fe.protocols import Protocol, RecordedPath, Step
 from brain_fe.vocabulary import (
-    AXIAL_FORCE,
     CHANNELS,
     COMPRESSION_TENSION,
     CONTROL,
@@ -61,7 +60,7 @@ from brain_fe.vocabulary import (
 )
 from recordings.noise import RigNoise, add_noise
 from recordings.observations import observations
-from recordings.schema import RECORDING_COLUMNS
+from recordings.synthetic import recordings_table
 from simulators.coordinates import model_point
 from simulators.fe import FESimulator
 
@@ -290,12 +289,7 @@ def simulate(spec: Specimen, truth: Truth, times: list[np.ndarray], *, refinemen
             df[col] = y
         session_t += turns[-1] + GAP_S
         parts.append(df)
-    out = pd.concat(parts, ignore_index=True)
-    for c in RECORDING_COLUMNS:
-        if c not in out:
-            out[c] = np.nan
-    out.loc[out.test == COMPRESSION_TENSION, AXIAL_FORCE] = np.nan
-    return out[list(RECORDING_COLUMNS)]
+    return recordings_table(parts)
 
 
 def _session_s(spec: Specimen) -> float:

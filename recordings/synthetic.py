@@ -47,7 +47,13 @@ def record(fm: ForwardModel, params, protocols, specimen: str, *, noise: float, 
         df.insert(1, "test", prot.test)
         df.insert(2, "amplitude", amp)
         rows.append(df)
-    out = pd.concat(rows, ignore_index=True)
+    return recordings_table(rows)
+
+
+def recordings_table(parts: Sequence[pd.DataFrame]) -> pd.DataFrame:
+    """The model's outputs of several tests (each with ``specimen``, ``test``,
+    ``amplitude``) as one recordings table: every column of the layout, in its order."""
+    out = pd.concat(parts, ignore_index=True)
     for c in RECORDING_COLUMNS:
         if c not in out:
             out[c] = np.nan
