@@ -41,16 +41,16 @@ from simulators.coordinates import NU0
 
 from . import locate as loc
 from .effects import BASE_NAMES, check_effects, library, separating_test
-from .fitting import Fit, fit, initial_guess, sigma_guess
+from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
 from .noise import NoiseModel, estimate_noise, fit_noise
-from .remaining import remaining
+from .remaining import remaining, systematic_basis
 from .selection import Context, Union, compare, compatible, run_round
 
 log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-3"
+ENGINE_VERSION = "2026.11-open-world-4"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 
@@ -197,11 +197,11 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                         first=rounds[0] if rounds else None)
         rounds.append(rnd)
         if not rnd.fits:
-            rnd.noise = fit_noise(obs, _residual(obs, current), stated=noise)
+            rnd.noise = _noise_of(obs, current, noise)
             rnd.table = compare(ctx, rnd, current, len(cands), rnd.noise)
             break
         leader = min(rnd.fits.values(), key=lambda f: f.chi2)
-        rnd.noise = fit_noise(obs, _residual(obs, leader), stated=noise)
+        rnd.noise = _noise_of(obs, leader, noise)
         rnd.table = compare(ctx, rnd, current, len(cands), rnd.noise)
         sig = [r for r in rnd.table if r["significant"]]
         if not sig:
@@ -219,11 +219,11 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
         if not rem["systematic"]:  # explained: no further effect can earn a place
             break
-        with _sharing(sim, comm):
-            J = sim.predict(current.values, _all_names(lib, chosen)).jacobian
+        J = _jacobian(sim, comm, current, _all_names(lib, chosen))
     if final_noise is None or final_noise.fitted_to is not current:
         final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
-    located = loc.locate(obs, final_noise.whiten(_residual(obs, base)), 1.0, sigma_dof=np.inf)
+    located = loc.locate(obs, final_noise.whiten(_residual(obs, base)), 1.0,
+                          sigma_dof=final_noise.dof)
     if chosen:
         status = "partially explained" if rem["systematic"] else "explained"
     else:
@@ -241,14 +241,37 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
 def _what_remains(obs, current: Fit, stated, alpha, bic_margin):
     """The noise model of ``current``'s residual and what that model leaves systematic."""
     r = _residual(obs, current)
-    nm = fit_noise(obs, r, stated=stated)
-    nm.fitted_to = current
+    nm = _noise_of(obs, current, stated)
     return nm, remaining(obs, r, nm, alpha=alpha, bic_margin=bic_margin,
                          prediction=current.prediction)
 
 
+def _noise_of(obs, f: Fit, stated) -> NoiseModel:
+    """The noise model of ``f``'s residual by restricted ML: every misfit the tests of
+    :mod:`diagnosis.remaining` call systematic (repeated at every cycle or branch, a
+    stiffness trend) and ``f``'s own parameters (its Jacobian's columns) are kept out of
+    it, so that a smooth misfit the model lacks is never taken for wander.  On short
+    series this leaves few degrees of freedom; the model carries them (``dof``) and the
+    located tests are F tests with them."""
+    B = systematic_basis(obs, f.prediction)
+    if f.jacobian is not None and np.isfinite(f.jacobian).all():
+        B = np.hstack([B, f.jacobian])
+    nm = fit_noise(obs, _residual(obs, f), stated=stated, systematic=B)
+    nm.fitted_to = f
+    return nm
+
+
 def _residual(obs, f: Fit) -> np.ndarray:
     return f.prediction - obs["value"].to_numpy(float)
+
+
+def _jacobian(sim, comm, f: Fit, names: list) -> np.ndarray:
+    """The Jacobian of the model at ``f`` with respect to ``names``: the fit's own when it
+    was taken with respect to the same parameters (no second solve along the path)."""
+    if f.jacobian is not None and list(map(str, f.names)) == list(map(str, names)):
+        return f.jacobian
+    with _sharing(sim, comm):
+        return sim.predict(f.values, names).jacobian
 
 
 def _all_names(lib, effects) -> list:
@@ -295,7 +318,8 @@ def _base(sim, fine_sim, obs, stated):
     """Base fit, discretisation correction, noise weights, refit and the base Jacobian."""
     names = list(BASE_NAMES)
     sigma = sigma_guess(obs)
-    base = fit(sim, obs, sigma, {**initial_guess(obs), NU0: sim.nu0}, names, max_nfev=40)
+    start = solvable_start(sim, {**initial_guess(obs), NU0: sim.nu0})
+    base = fit(sim, obs, sigma, start, names, max_nfev=40)
     disc = {"corrected": False}
     if fine_sim is not None:
         y_fine, _ = fine_sim.predict(base.values, [])

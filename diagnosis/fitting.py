@@ -25,6 +25,34 @@ from .effects import library
 log = logging.getLogger(__name__)
 
 BASE_BOUNDS = {Param("mu", 0): (1e-3, 100.0), Param("alpha", 0): (-60.0, 60.0)}
+# Start values of alpha tried in turn when the model cannot be solved at the first one
+# (alpha = -10, brain-like, locks up at large compression): a generic design, not a range
+ALPHA_STARTS = (-10.0, 2.0, -2.0, 10.0)
+
+
+class UnsolvableStart(ValueError):
+    """The model cannot be solved at the start values of a fit (one line: which fit, why)."""
+
+
+def solvable_start(sim, start: dict) -> dict:
+    """``start`` with the first alpha of (its own, *ALPHA_STARTS) at which ``sim`` can be
+    solved along the whole protocol; :class:`UnsolvableStart` when there is none."""
+    alpha = Param("alpha", 0)
+    start = {Param.parse(k): v for k, v in start.items()}
+    why = ""
+    for a in dict.fromkeys((start[alpha], *ALPHA_STARTS)):
+        trial = {**start, alpha: a}
+        try:
+            y, _ = sim.predict(trial, [])
+        except RuntimeError as exc:
+            why = str(exc)
+            log.info("start alpha = %g cannot be solved (%s)", a, exc)
+            continue
+        if np.isfinite(y).all():
+            return trial
+    raise UnsolvableStart(f"the base model cannot be solved along this protocol at any start "
+                          f"value (alpha in {', '.join(f'{a:g}' for a in ALPHA_STARTS)}): "
+                          f"{why or 'non-finite prediction'}")
 
 
 @dataclass
@@ -39,6 +67,7 @@ class Fit:
     nfev: int
     stderr: dict = field(default_factory=dict)
     converged: bool = True  # False when the evaluation budget ended the fit
+    jacobian: np.ndarray | None = None  # d prediction / d parameters at the optimum
 
     @property
     def k(self) -> int:
@@ -79,11 +108,18 @@ def fit(sim, obs: pd.DataFrame, sigma: np.ndarray, start: dict, names: list, *,
         return pred({**fixed, **dict(zip(names, x, strict=True))}, names)
 
     def fun(x):
-        return (evaluate(x).y - value) / sigma
+        try:
+            return (evaluate(x).y - value) / sigma
+        except RuntimeError as exc:  # a trial point the model cannot follow (Newton fails)
+            # is refused: non-finite residuals make the trust region shrink and try again
+            log.info("fit of %s: trial point refused (%s)", effect, exc)
+            return np.full(value.shape, np.inf)
 
     def jac(x):
         return evaluate(x).jacobian / sigma[:, None]
 
+    if not np.isfinite(fun(x0)).all():  # cached: least_squares' first call costs nothing
+        raise UnsolvableStart(f"the {effect} model cannot be solved at its start values")
     res = optimize.least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf",
                                  x_scale="jac", max_nfev=max_nfev, xtol=1e-8, ftol=1e-8)
     vals = {**fixed, **dict(zip(names, res.x, strict=True))}
@@ -97,7 +133,7 @@ def fit(sim, obs: pd.DataFrame, sigma: np.ndarray, start: dict, names: list, *,
     except np.linalg.LinAlgError:  # pragma: no cover
         pass
     return Fit(effect, list(names), vals, float(z @ z), len(z), p.y, z, int(res.nfev), stderr,
-               converged=res.status > 0)
+               converged=res.status > 0, jacobian=p.jacobian)
 
 
 def initial_guess(obs: pd.DataFrame) -> dict:

@@ -178,12 +178,17 @@ class NoiseModel:
     ChannelNoise).  Whitening z = L^-1 r (Sigma = L L^T) makes residuals independent
     standard normal under the model."""
 
-    def __init__(self, obs: pd.DataFrame, series: dict[tuple, ChannelNoise]):
+    def __init__(self, obs: pd.DataFrame, series: dict[tuple, ChannelNoise],
+                 dof: np.ndarray | None = None):
         self.obs = obs
         self.fitted_to = None  # the fit whose residual it was estimated from, if any
         self.params = dict(series)
         self.series = _series(obs)
         self._chol = [self._cholesky(s) for s in self.series]
+        # per row: the degrees of freedom its series' noise was estimated from (rows less
+        # the columns projected out); a test of a segment against this noise is an F test
+        # with these (diagnosis.locate's sigma_dof).  Infinite: the noise is known.
+        self.dof = np.full(len(obs), np.inf) if dof is None else np.asarray(dof, float)
 
     def _cholesky(self, s) -> np.ndarray:
         import scipy.linalg as sl
@@ -234,6 +239,35 @@ class _Series:
     lags: np.ndarray  # |t_i - t_j|
     ramp: np.ndarray  # (t - t0)
 
+    basis: np.ndarray | None = None  # orthonormal columns projected out (REML), if any
+
+    def restrict(self, B: np.ndarray) -> None:
+        """Project the columns of ``B`` (rows of the whole table) out of this series'
+        likelihood: an orthonormal basis of their span on this series' rows.  Skipped when
+        they would leave fewer than ``MIN_REML_DOF`` degrees of freedom."""
+        Bs = B[self.rows]
+        Bs = Bs[:, np.abs(Bs).max(axis=0) > 0] if Bs.size else Bs
+        if not Bs.shape[1]:
+            return
+        u, sv, _ = np.linalg.svd(Bs, full_matrices=False)
+        q = u[:, sv > 1e-10 * sv[0]]
+        if len(self.rows) - q.shape[1] >= MIN_REML_DOF:
+            self.basis = q
+
+    def nll(self, ch: ChannelNoise, r: np.ndarray) -> float:
+        """-2 log (restricted) likelihood of ``r`` (this series' rows) under ``ch``, up to a
+        constant."""
+        import scipy.linalg as sl
+
+        c, low = sl.cho_factor(self.covariance(ch), lower=True, check_finite=False)
+        value = 2.0 * np.sum(np.log(np.diag(c))) + r @ sl.cho_solve((c, low), r)
+        if self.basis is not None:
+            Lb = sl.solve_triangular(c, self.basis, lower=True, check_finite=False)
+            zr = sl.solve_triangular(c, r, lower=True, check_finite=False)
+            q, rr = np.linalg.qr(Lb)
+            value += 2.0 * np.sum(np.log(np.abs(np.diag(rr)))) - float(np.sum((q.T @ zr) ** 2))
+        return float(value)
+
     def covariance(self, ch: ChannelNoise) -> np.ndarray:
         S = ch.corr**2 * np.exp(-self.lags / ch.corr_s) + ch.drift**2 * np.outer(
             self.ramp, self.ramp)
@@ -270,18 +304,31 @@ def time_scales(obs: pd.DataFrame) -> tuple[float, float]:
 # The correlated component may be as slow as half a ramp: slower wander cannot be told
 # from a misfit of one ramp by any test, and is left to the misfit (reported, never absorbed)
 MAX_CORR_OVER_RAMP = 0.5
+MIN_REML_DOF = 8  # residual degrees of freedom a series keeps after the projection
 
 
 def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
-              correlated: bool = True, drift: bool = True) -> NoiseModel:
+              correlated: bool = True, drift: bool = True,
+              systematic: np.ndarray | None = None) -> NoiseModel:
     """Maximum-likelihood noise model of ``residual`` (recorded minus model), per series
     (curve and channel: the noise of one channel may differ between tests).
 
     ``stated``: {channel: white SD} known from the instrument (then held for every series of
     that channel); ``correlated`` / ``drift``: include those components.  Starts from the
-    robust second-difference estimate."""
+    robust second-difference estimate.
+
+    ``systematic``: columns (n x p) spanning misfits that are *not* noise (e.g. a misfit
+    repeated at every cycle, :func:`diagnosis.remaining.systematic_basis`).  The noise is
+    then fitted by restricted maximum likelihood (REML): the likelihood of the residual's
+    part orthogonal to those columns,
+    ``log|S| + log|B^T S^-1 B| + r^T (S^-1 - S^-1 B (B^T S^-1 B)^-1 B^T S^-1) r``,
+    so that a smooth misfit the model lacks cannot be absorbed by the correlated
+    component, and the degrees of freedom the columns take are accounted for."""
     r = np.asarray(residual, float)
     series = _series(obs)
+    if systematic is not None and systematic.shape[1]:
+        for s in series:
+            s.restrict(systematic)
     dt, ramp = time_scales(obs)
     sd0 = estimate_noise(obs, r)
     params = {}
@@ -291,12 +338,14 @@ def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
         w0 = float(np.median(sd0[rows]))
         fixed = None if not stated or key[1] not in stated else float(stated[key[1]])
         params[key] = _fit_channel(mine, r, w0, fixed, dt, ramp, correlated, drift)
-    return NoiseModel(obs, params)
+    dof = np.empty(len(r))
+    for s in series:
+        dof[s.rows] = len(s.rows) - (0 if s.basis is None else s.basis.shape[1])
+    return NoiseModel(obs, params, dof)
 
 
 def _fit_channel(mine, r, w0, fixed_white, dt, ramp, correlated, drift) -> ChannelNoise:
     """ML parameters of one channel's noise (log parameters, bounded, L-BFGS-B)."""
-    import scipy.linalg as sl
     from scipy.optimize import minimize
 
     rows = np.concatenate([s.rows for s in mine])
@@ -324,15 +373,11 @@ def _fit_channel(mine, r, w0, fixed_white, dt, ramp, correlated, drift) -> Chann
                             drift=v.get("drift", 0.0))
 
     def nll(x) -> float:
-        cn, total = make(x), 0.0
-        for s in mine:
-            try:
-                c, low = sl.cho_factor(s.covariance(cn), lower=True, check_finite=False)
-            except np.linalg.LinAlgError:
-                return 1e300
-            rr = r[s.rows]
-            total += 2 * np.sum(np.log(np.diag(c))) + rr @ sl.cho_solve((c, low), rr)
-        return float(total)
+        cn = make(x)
+        try:
+            return float(sum(s.nll(cn, r[s.rows]) for s in mine))
+        except np.linalg.LinAlgError:
+            return 1e300
 
     if not names:
         return make(np.array([]))

@@ -15,6 +15,11 @@ it (white noise, wander correlated over at most half a ramp, drift from the tare
   and the report says so;
 * **trend**: the stiffness changing with time within a test of several cycles (the
   prediction scaled by time, one term per curve), which no library effect does.
+
+The noise model is estimated by restricted ML with these columns and the model's own
+parameters projected out (:func:`systematic_basis`, :func:`diagnosis.noise.fit_noise`), so
+it cannot absorb the misfit the tests look for; on short series that leaves few degrees of
+freedom, so every test here is an F test with the noise's own (``NoiseModel.dof``).
 """
 
 from __future__ import annotations
@@ -96,10 +101,41 @@ def trend_basis(obs: pd.DataFrame, prediction: np.ndarray) -> np.ndarray:
     return np.column_stack(cols) if cols else np.zeros((len(obs), 0))
 
 
-def _lrt(Bw: np.ndarray, z: np.ndarray, n: int, alpha: float, bic_margin: float) -> dict:
+def systematic_basis(obs: pd.DataFrame, prediction: np.ndarray | None = None) -> np.ndarray:
+    """Columns of every misfit these tests call systematic (the reproducible misfit and,
+    with a ``prediction``, the stiffness trend), to be kept out of the noise model
+    (:func:`diagnosis.noise.fit_noise`'s ``systematic``).  Wander slower than a ramp is
+    nearly the same on both sides of a turn and is then partly kept out as well: beyond
+    the noise model's contract (correlation over at most half a ramp), it may be reported
+    as misfit."""
+    obs = obs.reset_index(drop=True)
+    B, _ = reproducible_basis(obs)
+    if prediction is not None:
+        B = np.hstack([B, trend_basis(obs, np.asarray(prediction, float))])
+    return B
+
+
+def _nu_eff(obs: pd.DataFrame, dof: np.ndarray) -> float:
+    """Effective degrees of freedom of a noise estimated per series with ``dof`` (per
+    row): ``1 / nu = sum_s (n_s / n)^2 / nu_s`` (as in :func:`diagnosis.locate.locate`)."""
+    n = len(obs)
+    inv = sum((len(g) / n) ** 2 / float(dof[g.index[0]])
+              for _, g in obs.groupby(["curve", "channel"], sort=False))
+    return 1.0 / inv if inv > 0 else math.inf
+
+
+def _lrt(Bw: np.ndarray, z: np.ndarray, n: int, alpha: float, bic_margin: float,
+         nu: float = math.inf) -> dict:
+    """Gain of the columns ``Bw`` on the whitened residual ``z``: a chi-square test for a
+    known noise, an F test when the noise was estimated with ``nu`` degrees of freedom."""
     coef, _, rank, _ = np.linalg.lstsq(Bw, z, rcond=None)
     gain = float(z @ z - np.sum((z - Bw @ coef) ** 2))
-    p = float(stats.chi2.sf(gain, rank)) if rank else 1.0
+    if not rank:
+        p = 1.0
+    elif math.isfinite(nu):
+        p = float(stats.f.sf(gain / rank, rank, nu))
+    else:
+        p = float(stats.chi2.sf(gain, rank))
     return {"gain": gain, "dof": int(rank), "p_value": p, "significant": bool(
         rank and p < alpha and gain > rank * math.log(n) + bic_margin)}
 
@@ -110,17 +146,18 @@ def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 
     ``prediction``, also whether the stiffness trends with time (:func:`trend_basis`)."""
     obs = obs.reset_index(drop=True)
     z = noise.whiten(np.asarray(residual, float))
-    table = loc.locate(obs, z, 1.0, sigma_dof=np.inf)
+    table = loc.locate(obs, z, 1.0, sigma_dof=noise.dof)
     located = loc.summary(table)["located"]
+    nu = _nu_eff(obs, np.asarray(noise.dof, float))
     B, how = reproducible_basis(obs)
     rep = {"repeats": how, "gain": 0.0, "dof": 0, "p_value": 1.0, "significant": False}
     if B.shape[1]:
-        rep.update(_lrt(noise.whiten_jacobian(B), z, len(obs), alpha, bic_margin))
+        rep.update(_lrt(noise.whiten_jacobian(B), z, len(obs), alpha, bic_margin, nu))
     trend = {"gain": 0.0, "dof": 0, "p_value": 1.0, "significant": False}
     if prediction is not None:
         T = trend_basis(obs, np.asarray(prediction, float))
         if T.shape[1]:
-            trend = _lrt(noise.whiten_jacobian(T), z, len(obs), alpha, bic_margin)
+            trend = _lrt(noise.whiten_jacobian(T), z, len(obs), alpha, bic_margin, nu)
     return {"located": located, "reproducible": rep, "trend": trend,
             "systematic": bool(located) or rep["significant"] or trend["significant"],
             "table": table}
