@@ -116,3 +116,40 @@ def channel_noise(text: str) -> dict[str, float]:
     if not out:
         raise argparse.ArgumentTypeError("expected at least one CHANNEL=SD")
     return out
+
+
+def noise_option(text: str) -> dict:
+    """``--noise``: ``CH=SD,...`` for every specimen (see :func:`channel_noise`), or a
+    JSON file ``{specimen: {CH: SD}}`` such as the ``noise.json`` that ``brainmech
+    import`` writes (each specimen its own measured noise)."""
+    import json
+    from pathlib import Path
+
+    from brain_fe.vocabulary import CHANNELS
+
+    if "=" in text:
+        return channel_noise(text)
+    path = Path(text)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise argparse.ArgumentTypeError(
+            f"{text}: no such file (expected CH=SD,... or a noise.json)") from None
+    except (OSError, ValueError) as exc:
+        raise argparse.ArgumentTypeError(f"{text}: not a JSON file ({exc})") from None
+    if not isinstance(data, dict) or not data:
+        raise argparse.ArgumentTypeError(f"{text}: expected {{specimen: {{channel: SD}}}}")
+    out = {}
+    for spec, chans in data.items():
+        if not isinstance(chans, dict):
+            raise argparse.ArgumentTypeError(
+                f"{text}: specimen {spec!r}: expected {{channel: SD}}, got {chans!r}")
+        out[str(spec)] = {}
+        for ch, sd in chans.items():
+            ok = isinstance(sd, (int, float)) and not isinstance(sd, bool)
+            if ch not in CHANNELS or not ok or not math.isfinite(sd) or sd <= 0:
+                raise argparse.ArgumentTypeError(
+                    f"{text}: specimen {spec!r}, channel {ch!r}: expected one of "
+                    f"{', '.join(CHANNELS)} with a positive SD, got {sd!r}")
+            out[str(spec)][ch] = float(sd)
+    return {"by_specimen": out}

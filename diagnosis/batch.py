@@ -65,9 +65,10 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
             raise ValueError(f"{recordings}: no recordings of specimen {specimen!r}")
         names = [specimen]
     out = Path(out)
-    kw = dict(refinement=refinement, effects=effects, nu0=nu0, noise=noise)
+    kw = dict(refinement=refinement, effects=effects, nu0=nu0)
     if len(names) == 1:
-        res = _diagnose_one(names[0], rec, specs, out, comm=comm, progress=progress, **kw)
+        res = _diagnose_one(names[0], rec, specs, out, comm=comm, progress=progress,
+                            noise=noise_of(noise, names[0]), **kw)
         comm.Barrier()
         return {names[0]: dict(res, reused=False)} if comm.rank == 0 else {}
     config = {"refinement": refinement, "effects": sorted(effects) if effects else None,
@@ -78,7 +79,7 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
     error = comm.bcast(error, root=0)
     if error:
         raise ValueError(error)
-    pending = [n for n in names if not (out / str(n) / "diagnosis.json").exists()]
+    pending = [n for n in names if not _done(out / str(n))]
     log.info("%s: %d of %d specimens to diagnose on %d rank(s)", out, len(pending),
              len(names), comm.size)
     counter = SharedCounter(comm, slots=2)
@@ -88,8 +89,14 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
                   initial=len(names) - len(pending)) as bar:
         for name in dynamic_items(pending, counter):
             t0 = time.perf_counter()
-            res = _diagnose_one(name, rec, specs, out / str(name), comm=self_comm,
-                                progress=None, **kw)
+            try:
+                res = _diagnose_one(name, rec, specs, out / str(name), comm=self_comm,
+                                    progress=None, noise=noise_of(noise, name), **kw)
+            except (RuntimeError, ValueError) as exc:  # this specimen, not the batch
+                log.error("%s: not diagnosed: %s", name, exc)
+                res = {"verdict": "not diagnosed", "error": str(exc)}
+                (out / str(name)).mkdir(parents=True, exist_ok=True)
+                write_json_atomic(out / str(name) / FAILED, res, indent=1)
             done_here.append(name)
             counter.add(1)
             bar.update(1, f"{name}: {res['verdict']} ({time.perf_counter() - t0:.0f} s)")
@@ -104,12 +111,99 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
     counter.free()
     if comm.rank != 0:
         return {}
-    results = {n: dict(json.loads((out / str(n) / "diagnosis.json").read_text()),
-                       reused=n not in new) for n in names}
+    results = {n: dict(json.loads(_done(out / str(n)).read_text()), reused=n not in new)
+               for n in names}
     write_json_atomic(out / "diagnosis.json", {n: _digest(r) for n, r in results.items()},
                       indent=1)
-    write_text_atomic(out / "summary.md", summary_markdown(results))
+    write_text_atomic(out / "summary.md", summary_markdown(results) + "\n" + groups_markdown(
+        results, groups_of(specs, names)))
     return results
+
+
+def groups_of(specs, names: list) -> dict:
+    """Specimen -> group: ``region/brain`` of the specimens table (for imported rheometer
+    exports: material/protocol, e.g. ``fungi_steak/2s``), or the region alone when every
+    such group would hold one specimen."""
+    rows = specs.set_index("specimen")
+    fine = {n: f"{rows.loc[n, 'region']}/{rows.loc[n, 'brain']}" for n in names}
+    if len(set(fine.values())) == len(names) and len(names) > 1:
+        return {n: str(rows.loc[n, "region"]) for n in names}
+    return fine
+
+
+def groups_markdown(results: dict, groups: dict) -> str:
+    """Across the specimens of each group: verdicts, how often each effect is named, the
+    refit parameters (median and range), RMS against the noise before and after, and what
+    the final models leave."""
+    import numpy as np
+
+    lines = ["# Across specimens, by group", "",
+             "| group | n | verdicts | effects named | RMS/noise before, median (range) | "
+             "after | after <= before / 2 where named | what remains (most often) |",
+             "|---|---|---|---|---|---|---|---|"]
+    params_lines = ["", "Refit parameters per group: median (min - max) over the specimens",
+                    "", "| group | parameter | n | median | min | max |",
+                    "|---|---|---|---|---|---|"]
+    for g in dict.fromkeys(groups.values()):
+        verdicts = _counts(results[n]["verdict"] for n in results if groups.get(n) == g)
+        rs = [results[n] for n in results if groups.get(n) == g and "error" not in results[n]]
+        if not rs:
+            lines.append(f"| {g} | 0 | {_fmt(verdicts)} | - | - | - | - | - |")
+            continue
+        effects = _counts(e for r in rs for e in r.get("effects", []))
+        before = np.array([r["rms_before"] for r in rs])
+        after = np.array([r["rms_after"] for r in rs])
+        named = [r for r in rs if r.get("effects")]
+        halved = sum(r["rms_after"] <= 0.5 * r["rms_before"] for r in named)
+        left = _counts((r.get("remaining", {}).get("located") or [{}])[0].get("segment", "-")
+                       for r in rs if r.get("status") in ("partially explained", "unexplained"))
+        lines.append(
+            f"| {g} | {len(rs)} | {_fmt(verdicts)} | {_fmt(effects) or '-'} | "
+            f"{np.median(before):.2f} ({before.min():.2f}-{before.max():.2f}) | "
+            f"{np.median(after):.2f} ({after.min():.2f}-{after.max():.2f}) | "
+            f"{f'{halved}/{len(named)}' if named else '-'} | {_fmt(left) or '-'} |")
+        names = dict.fromkeys(k for r in rs for k in r.get("refit_parameters", {}))
+        for k in names:
+            v = np.array([r["refit_parameters"][k] for r in rs
+                          if k in r.get("refit_parameters", {})])
+            params_lines.append(f"| {g} | {k} | {len(v)} | {np.median(v):.4g} | "
+                                f"{v.min():.4g} | {v.max():.4g} |")
+    return "\n".join(lines + params_lines) + "\n"
+
+
+def _counts(items) -> dict:
+    out: dict = {}
+    for x in items:
+        out[x] = out.get(x, 0) + 1
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
+
+
+def _fmt(counts: dict) -> str:
+    return ", ".join(f"{k} {v}" for k, v in counts.items())
+
+
+FAILED = "not_diagnosed.json"  # beside where diagnosis.json would be: why it is not
+
+
+def _done(folder: Path) -> Path | None:
+    """The result file of a specimen's folder (its diagnosis, or why there is none)."""
+    for name in ("diagnosis.json", FAILED):
+        if (folder / name).exists():
+            return folder / name
+    return None
+
+
+def noise_of(noise: dict | None, specimen: str) -> dict | None:
+    """The stated noise of ``specimen``: ``noise`` is None (estimate it), ``{channel: SD}``
+    for every specimen, or ``{"by_specimen": {specimen: {channel: SD}}}`` (a specimen it
+    does not list has its noise estimated, and the log says so)."""
+    if not noise or "by_specimen" not in noise:
+        return noise or None
+    mine = noise["by_specimen"].get(str(specimen))
+    if mine is None:
+        log.warning("%s: no stated noise for this specimen; estimated from its recordings",
+                    specimen)
+    return mine
 
 
 def _claim(out: Path, config: dict) -> str | None:
@@ -128,7 +222,7 @@ def _claim(out: Path, config: dict) -> str | None:
 
 
 def _digest(r: dict) -> dict:
-    keys = ("verdict", "effects", "status", "rms_before", "rms_after")
+    keys = ("verdict", "effects", "status", "rms_before", "rms_after", "error")
     return {k: r[k] for k in keys if k in r}
 
 
@@ -138,6 +232,9 @@ def summary_markdown(results: dict) -> str:
              "| specimen | verdict | status | RMS/noise before -> after | where the base model "
              "misfits | what remains |", "|---|---|---|---|---|---|"]
     for n, r in results.items():
+        if "error" in r:
+            lines.append(f"| {n} | not diagnosed | - | - | - | {r['error']} |")
+            continue
         where = r["located"][0]["segment"] if r.get("located") else "-"
         left = r.get("remaining", {}).get("located") or []
         lines.append(f"| {n} | {r['verdict']} | {r.get('status', '-')} | "

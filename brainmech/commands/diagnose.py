@@ -28,10 +28,13 @@ def add(sub) -> None:
     p.add_argument("--refinement", type=a.count(1), default=1,
                    help="working mesh level; k+1 corrects its discretisation error")
     p.add_argument("--nu0", type=a.finite, default=0.49, help="assumed initial Poisson ratio")
-    p.add_argument("--noise", type=a.channel_noise, default=None, metavar="CH=SD,...",
+    p.add_argument("--noise", type=a.noise_option, default=None,
+                   metavar="CH=SD,... | noise.json",
                    help="the instrument's white noise per channel, e.g. stress=0.005,"
-                   "torque=0.02,axial_force=0.3 (kPa, mN mm, mN); held fixed while wander "
-                   "and drift are still fitted (default: estimated from the recordings)")
+                   "torque=0.02,axial_force=0.3 (kPa, mN mm, mN), or per specimen from a "
+                   "JSON file {specimen: {CH: SD}} (the noise.json of `brainmech import`); "
+                   "held fixed while wander and drift are still fitted (default: estimated "
+                   "from the recordings)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(run=run)
 
@@ -65,7 +68,8 @@ def run(args) -> int:
                               effects=args.effects, nu0=args.nu0, noise=args.noise,
                               progress=True)
     if MPI.COMM_WORLD.rank == 0:
-        say([f"{n}: verdict {r['verdict']}, RMS/noise {r['rms_before']:.2f} -> "
+        say([f"{n}: not diagnosed: {r['error']}" if "error" in r else
+             f"{n}: verdict {r['verdict']}, RMS/noise {r['rms_before']:.2f} -> "
              f"{r['rms_after']:.2f} ({'reused' if r['reused'] else 'diagnosed in this run'})"
              for n, r in res.items()] + [f"wrote {args.out}"])
     return 0

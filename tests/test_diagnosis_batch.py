@@ -1,0 +1,95 @@
+"""The batch of ``brainmech diagnose`` over many specimens: a specimen the model cannot
+solve is recorded as not diagnosed (with why) and does not stop the others; the summary
+groups the specimens (material/protocol of imported exports) and is resumable.  The FE
+diagnosis itself is replaced by a stand-in here (it is tested in test_diagnosis.py and
+test_open_world.py); what is tested is the batch's bookkeeping."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import diagnosis.batch as batch
+from diagnosis.fitting import UnsolvableStart, solvable_start
+
+HEADER = ("specimen,test,amplitude,cycle,branch,time_s,stretch,shear,"
+          "nominal_stress_kPa,torque_mNmm,axial_force_mN\n")
+
+
+def _tables(tmp_path):
+    spec = tmp_path / "specimens.csv"
+    spec.write_text("specimen,region,brain,radius_mm,height_mm\n"
+                    "a/1,fungi,2s,4,9\na/2,fungi,2s,4,9\nb/1,fungi,8s,4,9\n")
+    rows = "".join(f"{s},compression_tension,0.2,1,loading,{i},{1 - 0.05 * i},,"
+                   f"{-0.5 * i},,\n" for s in ("a/1", "a/2", "b/1") for i in range(5))
+    rec = tmp_path / "recordings.csv"
+    rec.write_text(HEADER + rows)
+    return str(rec), str(spec)
+
+
+def _stand_in(calls):
+    def one(name, rec, specs, target, *, refinement, effects, nu0, noise, comm, progress):
+        calls.append((name, noise))
+        if name == "a/2":
+            raise UnsolvableStart("the base model cannot be solved along this protocol")
+        res = {"verdict": "viscoelastic", "effects": ["viscoelastic"], "status": "explained",
+               "rms_before": 4.0, "rms_after": 1.0, "located": [], "remaining": {},
+               "refit_parameters": {"mu_0": 2.0 if name == "a/1" else 3.0}}
+        target.mkdir(parents=True, exist_ok=True)
+        (target / "diagnosis.json").write_text(json.dumps(res))
+        return res
+    return one
+
+
+def test_a_specimen_that_cannot_be_modelled_does_not_stop_the_batch(tmp_path, monkeypatch):
+    rec, spec = _tables(tmp_path)
+    noise = tmp_path / "noise.json"
+    noise.write_text(json.dumps({"a/1": {"stress": 0.2}, "b/1": {"stress": 0.1}}))
+    from brainmech.args import noise_option
+
+    calls = []
+    monkeypatch.setattr(batch, "_diagnose_one", _stand_in(calls))
+    out = tmp_path / "out"
+    res = batch.diagnose_recordings(rec, spec, str(out), noise=noise_option(str(noise)))
+    assert dict(calls) == {"a/1": {"stress": 0.2}, "a/2": None, "b/1": {"stress": 0.1}}
+    assert res["a/2"]["verdict"] == "not diagnosed" and "cannot be solved" in res["a/2"]["error"]
+    assert (out / "a" / "2" / batch.FAILED).exists()
+    summary = (out / "summary.md").read_text()
+    assert "| a/2 | not diagnosed |" in summary
+    # grouped by material/protocol: fungi/2s holds a/1 (diagnosed) and a/2 (not)
+    assert "| fungi/2s | 1 | viscoelastic 1, not diagnosed 1 | viscoelastic 1 |" in summary
+    assert "| fungi/2s | mu_0 | 1 | 2 | 2 | 2 |" in summary
+    assert "1/1" in summary  # RMS after <= half of before where an effect is named
+    # resumed: nothing diagnosed again, the failure included
+    monkeypatch.setattr(batch, "_diagnose_one", lambda *a, **k: pytest.fail("re-diagnosed"))
+    again = batch.diagnose_recordings(rec, spec, str(out), noise=noise_option(str(noise)))
+    assert all(r["reused"] for r in again.values()) and set(again) == {"a/1", "a/2", "b/1"}
+
+
+class _Stiff:
+    """A stand-in simulator that cannot be solved for alpha < 0 (like a brain-like start at
+    50 % compression)."""
+
+    def predict(self, values, wrt):
+        import numpy as np
+
+        from brain_fe.solver import ConvergenceError
+
+        if {str(k): v for k, v in values.items()}["alpha_0"] < 0:
+            raise ConvergenceError("Newton failed at stretch = 0.58")
+        return np.ones(3), None
+
+
+def test_the_base_start_moves_on_when_the_model_cannot_be_solved():
+    start = solvable_start(_Stiff(), {"mu_0": 1.0, "alpha_0": -10.0, "nu0": 0.49})
+    assert {str(k): v for k, v in start.items()}["alpha_0"] == 2.0  # the first solvable one
+
+    class Never(_Stiff):
+        def predict(self, values, wrt):
+            from brain_fe.solver import ConvergenceError
+
+            raise ConvergenceError("Newton failed at stretch = 0.58")
+
+    with pytest.raises(UnsolvableStart, match="stretch = 0.58"):
+        solvable_start(Never(), {"mu_0": 1.0, "alpha_0": -10.0, "nu0": 0.49})
