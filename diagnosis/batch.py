@@ -115,8 +115,12 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
                for n in names}
     write_json_atomic(out / "diagnosis.json", {n: _digest(r) for n, r in results.items()},
                       indent=1)
+    groups = groups_of(specs, names)
     write_text_atomic(out / "summary.md", summary_markdown(results) + "\n" + groups_markdown(
-        results, groups_of(specs, names)))
+        results, groups) + "\n![across specimens](summary.png)\n")
+    from .figures import across_specimens
+
+    across_specimens(results, groups, out / "summary.png")
     return results
 
 

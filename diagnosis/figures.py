@@ -165,3 +165,40 @@ def before_after(d, path) -> None:
     fig.tight_layout()
     write_figure_atomic(fig, path, dpi=110)
     plt.close(fig)
+
+
+def across_specimens(results: dict, groups: dict, path) -> None:
+    """Every specimen of a batch: RMS against the noise before and after (log-log, one
+    marker per group; below the dashed line the named effects halve it) and the verdicts
+    per group."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(dict.fromkeys(groups.values()))
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
+    markers = "osD^v<>phX*"
+    for k, g in enumerate(names):
+        rs = [r for n, r in results.items() if groups.get(n) == g and "error" not in r]
+        if rs:
+            ax.loglog([r["rms_before"] for r in rs], [r["rms_after"] for r in rs],
+                      markers[k % len(markers)], label=g, alpha=0.8)
+    lim = ax.get_xlim()
+    ax.plot(lim, lim, "k-", lw=0.7)
+    ax.plot(lim, [0.5 * v for v in lim], "k--", lw=0.7)
+    ax.set_xlabel("RMS / noise, base model")
+    ax.set_ylabel("RMS / noise, final model")
+    ax.legend(fontsize=7)
+    verdicts = sorted({r["verdict"] for r in results.values()})
+    bottom = np.zeros(len(names))
+    for v in verdicts:
+        h = np.array([sum(1 for n, r in results.items() if groups.get(n) == g
+                          and r["verdict"] == v) for g in names], float)
+        bx.barh(names, h, left=bottom, label=v)
+        bottom += h
+    bx.set_xlabel("specimens")
+    bx.legend(fontsize=7)
+    fig.tight_layout()
+    write_figure_atomic(fig, path, dpi=110)
+    plt.close(fig)

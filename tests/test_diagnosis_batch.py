@@ -61,6 +61,7 @@ def test_a_specimen_that_cannot_be_modelled_does_not_stop_the_batch(tmp_path, mo
     assert "| fungi/2s | 1 | viscoelastic 1, not diagnosed 1 | viscoelastic 1 |" in summary
     assert "| fungi/2s | mu_0 | 1 | 2 | 2 | 2 |" in summary
     assert "1/1" in summary  # RMS after <= half of before where an effect is named
+    assert (out / "summary.png").stat().st_size > 10_000
     # resumed: nothing diagnosed again, the failure included
     monkeypatch.setattr(batch, "_diagnose_one", lambda *a, **k: pytest.fail("re-diagnosed"))
     again = batch.diagnose_recordings(rec, spec, str(out), noise=noise_option(str(noise)))
