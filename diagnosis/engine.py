@@ -321,8 +321,16 @@ def _base(sim, fine_sim, obs, stated):
     start = solvable_start(sim, {**initial_guess(obs), NU0: sim.nu0})
     base = fit(sim, obs, sigma, start, names, max_nfev=40)
     disc = {"corrected": False}
+    try:
+        y_fine = None if fine_sim is None else fine_sim.predict(base.values, [])[0]
+    except RuntimeError as exc:  # the finer mesh cannot follow (e.g. its glued corner
+        # at large compression): diagnosed uncorrected, and the report says so
+        log.warning("no discretisation correction: mesh k = %d cannot be solved at the "
+                    "base fit (%s)", fine_sim.refinement, exc)
+        disc["not_corrected_because"] = (f"mesh k = {fine_sim.refinement} cannot be solved "
+                                         f"at the base fit: {exc}")
+        y_fine = fine_sim = None
     if fine_sim is not None:
-        y_fine, _ = fine_sim.predict(base.values, [])
         sim.correction = np.zeros(len(obs))
         y_coarse, _ = sim.predict(base.values, [])
         factor = 2 ** RICHARDSON_ORDER / (2 ** RICHARDSON_ORDER - 1)

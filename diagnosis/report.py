@@ -107,6 +107,9 @@ def _write(d, out: Path, title: str) -> dict:
                   f"{disc['reference_refinement']} at the base fit (the Richardson limit of "
                   f"order 3; correction max {disc['max_over_noise']:.2f}, RMS "
                   f"{disc['rms_over_noise']:.2f} noise standard deviations)."]
+    elif disc.get("not_corrected_because"):
+        lines += ["", "Discretisation: **not corrected** (" + disc["not_corrected_because"]
+                  + "); the working mesh's discretisation error may be part of the misfit."]
     lines += ["", f"Elapsed: {res['elapsed_s']:.0f} s."]
     write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
     return res

@@ -94,3 +94,39 @@ def test_the_base_start_moves_on_when_the_model_cannot_be_solved():
 
     with pytest.raises(UnsolvableStart, match="stretch = 0.58"):
         solvable_start(Never(), {"mu_0": 1.0, "alpha_0": -10.0, "nu0": 0.49})
+
+
+def test_a_finer_mesh_that_cannot_follow_leaves_the_model_uncorrected_and_says_so():
+    """The k + 1 mesh of the discretisation correction can fail where the working mesh
+    solves (its glued corner at 40 % compression, measured on the rheometer's double
+    compressions): the diagnosis goes on uncorrected and the report says why.  The base fit
+    is then exactly the working model's (the analytical homogeneous model here: mu = 1.3
+    kPa, alpha = -15 recovered to 1e-6 from noise-free data)."""
+    import numpy as np
+    import pandas as pd
+
+    from brain_fe.solver import ConvergenceError
+    from diagnosis.engine import _base
+    from simulators.homogeneous import HomogeneousSimulator
+
+    lam = np.r_[np.linspace(0.99, 0.85, 8), np.linspace(1.01, 1.15, 8)]
+    obs = pd.DataFrame({"specimen": "S", "curve": ["compression"] * 8 + ["tension"] * 8,
+                        "channel": "stress", "branch": "loading", "cycle": 1,
+                        "control": lam, "time_s": np.nan, "value": 0.0})
+    sim = HomogeneousSimulator(obs)
+    truth = {"mu_0": 1.3, "alpha_0": -15.0, "nu0": 0.49}
+    obs["value"] = sim.predict(truth, [])[0]
+
+    class Fails:
+        refinement = 2
+
+        def predict(self, values, wrt):
+            raise ConvergenceError("Newton failed at stretch = 0.6")
+
+    base, _, disc, _ = _base(sim, Fails(), obs, {"stress": 1e-3})
+    assert disc["corrected"] is False
+    assert "k = 2 cannot be solved" in disc["not_corrected_because"]
+    assert "stretch = 0.6" in disc["not_corrected_because"]
+    got = {str(k): v for k, v in base.values.items()}
+    assert got["mu_0"] == pytest.approx(1.3, rel=1e-6)
+    assert got["alpha_0"] == pytest.approx(-15.0, rel=1e-6)
