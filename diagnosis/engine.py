@@ -19,7 +19,8 @@
    final model leaves systematic (located, or reproducible across repetitions:
    :mod:`diagnosis.remaining`) decides the status.
 
-Outcome: ``verdict`` is ``none``, an effect, effects joined by ``+``, or ``unexplained``;
+Outcome: ``verdict`` is ``none``, an effect, effects joined by ``+`` (alphabetical), or
+``unexplained``;
 ``status`` is ``none`` (nothing systematic), ``explained`` (the named effects leave noise),
 ``partially explained`` (they leave a systematic misfit) or ``unexplained`` (a systematic
 misfit no candidate removes; the closest candidates are listed).
@@ -73,8 +74,8 @@ class Diagnosis:
 
     @property
     def verdict(self) -> str:
-        if self.effects:
-            return "+".join(self.effects)
+        if self.effects:  # alphabetical: one spelling per set (``effects`` keeps the order
+            return "+".join(sorted(self.effects))  # in which they were added)
         return "unexplained" if self.status == "unexplained" else "none"
 
     @property

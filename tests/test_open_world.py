@@ -23,6 +23,19 @@ def test_plan_covers_every_kind_in_each_block_of_20():
     assert plan(7, 3)[:3] == plan(7, 3)[:3]  # a case depends on (seed, index) only
 
 
+def test_a_pair_is_scored_as_a_set():
+    """A verdict names a set of effects: alphabetical since open-world-4, in the order of
+    addition before; either spelling of the right set scores, any other set does not."""
+    from diagnosis.open_benchmark import _correct
+
+    lab = {"expected": "artefacts+imperfect_gluing"}
+    assert _correct(lab, {"verdict": "artefacts+imperfect_gluing"})
+    assert _correct(lab, {"verdict": "imperfect_gluing+artefacts"})
+    assert not _correct(lab, {"verdict": "imperfect_gluing"})
+    assert not _correct(lab, {"verdict": "artefacts+imperfect_gluing+mullins"})
+    assert _correct({"expected": "none"}, {"verdict": "none"})
+
+
 def test_recorded_times_are_not_on_the_fe_steps():
     """The instrument's clock: a fixed interval from a random phase with jitter, inside the
     protocol, never on its turning points."""
