@@ -1,0 +1,97 @@
+"""Re-diagnose stored open-world cases with the current engine, side by side with the
+stored verdicts: what a change of the engine does to the same recordings.
+
+    OPENBLAS_NUM_THREADS=1 mpirun -n 2 .venv/bin/python benchmarks/rediagnose_open.py \\
+        --benchmark open/ --out rediag/ [world003 world017 ...]
+
+``--benchmark`` is the folder of a ``brainmech benchmark-diagnosis --world open`` run
+(its ``cases/`` and ``labels/``); without case names every case with a stored result is
+taken.  The cases are handed out to whichever rank is free; each new result is written to
+``--out`` as soon as it is done (a re-run skips the cases already there).  Rank 0 then
+scores the stored and the new results of the same cases (``diagnosis.open_benchmark``)
+and writes ``--out/compare.md`` with both summaries and one line per case.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+import types
+from pathlib import Path
+
+from mpi4py import MPI
+
+from brain_fe.io import write_json_atomic, write_text_atomic
+from brain_fe.parallel import SharedCounter, dynamic_items
+from diagnosis.open_benchmark import _diagnose, _rms_over_rig_noise, score, summary_markdown
+from recordings.observations import observations
+from recordings.tables import read_recordings, read_specimens
+
+
+def _case(src: Path, name: str):
+    lab = json.loads((src / "labels" / f"{name}.json").read_text())
+    spec = read_specimens(src / "cases" / f"{name}_specimens.csv")
+    obs = observations(read_recordings(src / "cases" / f"{name}_recordings.csv", spec))
+    return lab, obs
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--benchmark", required=True, help="folder of an open-world benchmark")
+    ap.add_argument("--out", required=True, help="folder of the new results")
+    ap.add_argument("cases", nargs="*", help="case names (default: every stored result)")
+    a = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    comm = MPI.COMM_WORLD
+    src, out = Path(a.benchmark), Path(a.out)
+    names = a.cases or sorted(p.name.removesuffix("_result.json")
+                              for p in (src / "cases").glob("*_result.json"))
+    if comm.rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+    comm.Barrier()
+    pending = [n for n in names if not (out / f"{n}_result.json").exists()]
+    counter = SharedCounter(comm)
+    for name in dynamic_items(pending, counter):
+        lab, obs = _case(src, name)
+        t0 = time.perf_counter()
+        res = _diagnose(obs, types.SimpleNamespace(**lab["specimen"]), 1, name)
+        res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, lab["noise_sd"])
+        write_json_atomic(out / f"{name}_result.json", res, indent=1, default=str)
+        old = json.loads((src / "cases" / f"{name}_result.json").read_text())
+        logging.getLogger("rediagnose").warning(
+            "%s %s (%s): stored %s (%s) -> now %s (%s), %.0f s", name, lab["kind"],
+            lab["expected"], old["verdict"], old["status"], res["verdict"], res["status"],
+            time.perf_counter() - t0)
+    counter.free()
+    comm.Barrier()
+    if comm.rank:
+        return
+    labels, old, new = {}, {}, {}
+    for n in names:
+        lab, obs = _case(src, n)
+        labels[n] = lab
+        new[n] = json.loads((out / f"{n}_result.json").read_text())
+        o = json.loads((src / "cases" / f"{n}_result.json").read_text())
+        o["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, o, lab["noise_sd"])
+        old[n] = o
+    so, sn = score(labels, old), score(labels, new)
+    lines = ["# Stored results against the current engine, same recordings", "",
+             "| case | kind | truth | stored verdict (status) | now (status) | "
+             "now: after / true noise | now: seconds |", "|---|---|---|---|---|---|---|"]
+    for n in names:
+        o, r = old[n], new[n]
+        lines.append(f"| {n} | {labels[n]['kind']} | {labels[n]['expected']} | "
+                     f"{o['verdict']} ({o['status']}) | {r['verdict']} ({r['status']}) | "
+                     f"{r.get('rms_after_over_true_noise', float('nan')):.2f} | "
+                     f"{r.get('elapsed_s', float('nan')):.0f} |")
+    text = ("\n".join(lines) + "\n\n## Stored\n\n" + summary_markdown(so)
+            + "\n## Now\n\n" + summary_markdown(sn))
+    write_text_atomic(out / "compare.md", text)
+    write_json_atomic(out / "compare.json", {"stored": so, "now": sn}, indent=1, default=str)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
