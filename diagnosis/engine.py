@@ -22,8 +22,10 @@
 Outcome: ``verdict`` is ``none``, an effect, effects joined by ``+`` (alphabetical), or
 ``unexplained``;
 ``status`` is ``none`` (nothing systematic), ``explained`` (the named effects leave noise),
-``partially explained`` (they leave a systematic misfit) or ``unexplained`` (a systematic
-misfit no candidate removes; the closest candidates are listed).
+``partially explained`` (they leave a systematic misfit, having at least halved the RMS
+misfit) or ``unexplained`` (a systematic misfit no candidate removes, or that the best
+model of the library does not halve: then ``tried`` holds that model's effects and the
+closest candidates are listed).
 """
 
 from __future__ import annotations
@@ -51,9 +53,13 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-4"
+ENGINE_VERSION = "2026.11-open-world-5"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
+# Effects that leave a systematic misfit are named ("partially explained") only when they at
+# least halve the RMS misfit (in units of the noise); otherwise the misfit is something else
+# and the verdict is ``unexplained``, with the library's closest model beside it
+EXPLAINS_FRACTION = 0.5
 
 
 @dataclass
@@ -71,6 +77,7 @@ class Diagnosis:
     elapsed_s: float
     obs: pd.DataFrame
     notes: list = field(default_factory=list)
+    tried: list = field(default_factory=list)  # effects fitted that explain too little
 
     @property
     def verdict(self) -> str:
@@ -105,8 +112,7 @@ class Diagnosis:
         return out
 
     def _rms_total(self, fit: Fit) -> float:
-        r = fit.prediction - self.obs["value"].to_numpy(float)
-        return float(np.sqrt(np.mean((r / self.sigma) ** 2)))
+        return _rms(self.obs, fit, self.sigma)
 
     def closest(self, k: int = 2) -> list:
         """The candidates that came closest to explaining the misfit (first round)."""
@@ -128,6 +134,7 @@ class Diagnosis:
             "located": loc.summary(self.located)["located"],
             "remaining": rem,
             "closest": self.closest() if self.status == "unexplained" else [],
+            "tried": list(self.tried),
             "ranking": self.ranking,
             "rounds": [{"from": "+".join(r.current) or "base", "added": r.added,
                         "dropped": r.dropped, "table": r.table} for r in self.rounds],
@@ -225,10 +232,13 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
     located = loc.locate(obs, final_noise.whiten(_residual(obs, base)), 1.0,
                           sigma_dof=final_noise.dof)
-    if chosen:
-        status = "partially explained" if rem["systematic"] else "explained"
-    else:
-        status = "unexplained" if rem["systematic"] else "none"
+    sd = final_noise.sd()
+    status, chosen, tried = decide(chosen, rem["systematic"], _rms(obs, base, sd),
+                                   _rms(obs, current, sd))
+    if tried:
+        notes.append(f"the library's closest model ({'+'.join(sorted(tried))}) leaves "
+                     f"{100 * _rms(obs, current, sd) / _rms(obs, base, sd):.0f} % of the "
+                     f"base RMS misfit; an effect is named only when it at least halves it")
     if rem["reproducible"]["repeats"] == "none":
         notes.append("no repeated ramp (one pass of each): wander and a smooth misfit cannot "
                      "be told apart by repetition; only the located test applies")
@@ -236,7 +246,26 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         log.warning("%s and %s cannot be told apart with these tests (dBIC %.1f); %s",
                     *a["effects"], a["delta_bic"], a["separating_test"])
     return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
-                     ambiguous, disc, time.perf_counter() - t0, obs, notes)
+                     ambiguous, disc, time.perf_counter() - t0, obs, notes, tried)
+
+
+def decide(chosen: list, systematic: bool, rms_before: float, rms_after: float
+           ) -> tuple[str, list, list]:
+    """Status, named effects and merely tried effects of a diagnosis from the effects
+    selected, whether the final model leaves a systematic misfit, and the RMS misfit (in
+    noise SDs) of the base and the final model.  Effects that leave a systematic misfit
+    are named only when ``rms_after <= EXPLAINS_FRACTION * rms_before``."""
+    if not chosen:
+        return ("unexplained" if systematic else "none"), [], []
+    if not systematic:
+        return "explained", list(chosen), []
+    if rms_after <= EXPLAINS_FRACTION * rms_before:
+        return "partially explained", list(chosen), []
+    return "unexplained", [], list(chosen)
+
+
+def _rms(obs, f: Fit, sd: np.ndarray) -> float:
+    return float(np.sqrt(np.mean((_residual(obs, f) / sd) ** 2)))
 
 
 def _what_remains(obs, current: Fit, stated, alpha, bic_margin):

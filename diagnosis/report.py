@@ -29,6 +29,8 @@ STATUS_TEXT = {
     "misfit remains (below)",
     "unexplained": "a systematic misfit that no candidate of the library removes",
 }
+TRIED_TEXT = ("a systematic misfit the library does not explain: its closest model, {}, "
+              "leaves more than half of the RMS misfit, so no effect is named")
 
 
 def _segments(rows, limit=12) -> list[str]:
@@ -50,7 +52,9 @@ def _write(d, out: Path, title: str) -> dict:
     write_json_atomic(out / "diagnosis.json", res, indent=1, default=float)
     named = " + ".join(EFFECTS[e].description if e in EFFECTS else e for e in d.effects)
     lines = [f"# {title}", "", f"**Verdict: {d.verdict}** ({d.status})"
-             + (f" — {named}" if named else ""), "", STATUS_TEXT[d.status] + ".", "",
+             + (f" — {named}" if named else ""), "",
+             (TRIED_TEXT.format("+".join(sorted(d.tried))) if d.tried
+              else STATUS_TEXT[d.status]) + ".", "",
              f"Residual RMS / noise: {res['rms_before']:.2f} (base) -> "
              f"{res['rms_after']:.2f} (after modelling); 1 = noise level.", "",
              "## Where the base model misfits", "",

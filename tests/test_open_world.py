@@ -69,3 +69,19 @@ def test_open_world_two_cases_blind(tmp_path):
     assert again["confusion"] == s["confusion"]
     assert again["explained_rms_over_true_noise_max"] == pytest.approx(
         s["explained_rms_over_true_noise_max"], rel=1e-9)
+
+
+def test_an_effect_that_does_not_halve_the_misfit_is_not_named():
+    """The status rule on the RMS misfits (noise SDs) of diagnoses met while developing: a
+    real double compression (7.93 -> 7.84 with a second Ogden term: unexplained, the term
+    kept as tried), an outside-the-library case (2.48 -> 1.37: unexplained), a case whose
+    named effect removes most of the misfit (4.42 -> 1.73: partially explained)."""
+    from diagnosis.engine import decide
+
+    assert decide(["ogden_2term"], True, 7.93, 7.84) == ("unexplained", [], ["ogden_2term"])
+    assert decide(["compressibility", "artefacts"], True, 2.48, 1.37)[0] == "unexplained"
+    assert decide(["viscoelastic"], True, 4.42, 1.73) == ("partially explained",
+                                                          ["viscoelastic"], [])
+    assert decide(["mullins"], False, 1.46, 1.40) == ("explained", ["mullins"], [])
+    assert decide([], True, 3.0, 3.0) == ("unexplained", [], [])
+    assert decide([], False, 1.0, 1.0) == ("none", [], [])
