@@ -6,8 +6,9 @@
   diagnosis is complete; the specimens are handed out one at a time to whichever rank is
   free (:func:`brain_fe.parallel.dynamic_items`), each rank working alone, so the same
   command scales from 2 cores to a cluster under ``mpirun``/``srun``.  ``DIR/config.json``
-  records the settings; a re-run with the same settings (after an interruption, say)
-  diagnoses only the specimens without a result, and one with other settings is refused.
+  records the settings and the engine's version; a re-run with the same (after an
+  interruption, say) diagnoses only the specimens without a result, and one with other
+  settings or another engine is refused.
   ``DIR/diagnosis.json`` and ``DIR/summary.md`` gather the verdicts.
 """
 
@@ -27,7 +28,7 @@ from recordings.tables import read_recordings, read_specimens
 from simulators.fe import FESimulator
 
 from . import report
-from .engine import diagnose
+from .engine import ENGINE_VERSION, diagnose
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +72,8 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
                             noise=noise_of(noise, names[0]), **kw)
         comm.Barrier()
         return {names[0]: dict(res, reused=False)} if comm.rank == 0 else {}
-    config = {"refinement": refinement, "effects": sorted(effects) if effects else None,
+    config = {"engine": ENGINE_VERSION,
+              "refinement": refinement, "effects": sorted(effects) if effects else None,
               "nu0": nu0, "noise": noise, "recordings": str(Path(recordings).resolve())}
     error = None
     if comm.rank == 0:

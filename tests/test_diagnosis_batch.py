@@ -66,6 +66,10 @@ def test_a_specimen_that_cannot_be_modelled_does_not_stop_the_batch(tmp_path, mo
     monkeypatch.setattr(batch, "_diagnose_one", lambda *a, **k: pytest.fail("re-diagnosed"))
     again = batch.diagnose_recordings(rec, spec, str(out), noise=noise_option(str(noise)))
     assert all(r["reused"] for r in again.values()) and set(again) == {"a/1", "a/2", "b/1"}
+    # diagnoses of another engine are not mixed in: the same folder is refused
+    monkeypatch.setattr(batch, "ENGINE_VERSION", "another")
+    with pytest.raises(ValueError, match="another engine"):
+        batch.diagnose_recordings(rec, spec, str(out), noise=noise_option(str(noise)))
 
 
 class _Stiff:
