@@ -5,6 +5,7 @@ value``; ``curve`` is the test key (``compression_tension``, ``torsion_0.15``, .
 ``channel`` a channel name of :data:`brain_fe.vocabulary.CHANNELS` (``stress`` nominal
 stress [kPa], ``torque`` [mN mm], ``axial_force`` [mN]).  Rows of one (curve, channel) are
 in recording order.  Simulators predict these rows; the diagnosis locates misfit on them.
+Recordings with an ``in_contact`` column (imported rheometer compressions) keep it (1/0).
 """
 
 from __future__ import annotations
@@ -36,7 +37,9 @@ def observations(rec: pd.DataFrame, channels: dict[str, tuple[str, ...]] | None 
                 "specimen": spec, "curve": test_key(test, amp), "test": test,
                 "amplitude": float(amp), "channel": ch, "branch": g["branch"].to_numpy(),
                 "cycle": g["cycle"].to_numpy(int), "control": g[CONTROL[test]].to_numpy(float),
-                TIME: g[TIME].to_numpy(float), "value": g[col].to_numpy(float)}))
+                TIME: g[TIME].to_numpy(float), "value": g[col].to_numpy(float),
+                **({"in_contact": g["in_contact"].fillna(1).to_numpy(int)}
+                   if "in_contact" in g else {})}))
     if not parts:
         raise ValueError("the recordings hold no recorded channel")
     return pd.concat(parts, ignore_index=True)

@@ -35,8 +35,11 @@ each loading ramp after an unloading.  Holds (gap nearly constant, or a gap read
 stalls) are dropped, since the recordings table knows only loading and unloading.  Each ramp
 is resampled to ``points`` bin averages of equal width of the control.  The gap of each
 point (the reading, interpolated between its refreshes; stretch = gap_mm / H) is kept as
-``gap_mm``, so that a wrong contact point stays diagnosable.  Noise (``noise.json``): see
-:func:`_noise`.
+``gap_mm``, so that a wrong contact point stays diagnosable.  ``in_contact`` (1/0, compression
+rows) marks the points recorded with the plate on the specimen: after a lift-off on
+unloading (the force back at zero within ``CONTACT_BAND`` noise SDs to the ramp's end) and
+before the re-contact on reloading it is 0; the events are listed in the specimens table
+(``contact_events``) and import.md.  Noise (``noise.json``): see :func:`_noise`.
 
 Every problem raises :class:`RheometerError` (a ``ValueError``) with one line naming the
 file, the sheet and the row (spreadsheet rows as the spreadsheet shows them, from 1) or the
@@ -66,6 +69,7 @@ from brain_fe.vocabulary import (
     TIME,
     TORQUE,
     TORSION,
+    UNLOADING,
     torque_mNmm,
 )
 
@@ -83,6 +87,7 @@ PROCESSED_RATE = 0.002  # 0.2 %/s: the rate of the processed curves (their pseud
 MIN_REST = 10  # fewest samples at rest for a rest-noise estimate
 TIME_NAMES = ("step time", "time")
 FORCE_NAMES = ("normal force", "axial force")
+CONTACT_BAND = 3.0  # a resampled force within this many noise SDs of zero: plate off specimen
 
 
 # ------------------------------------------------------------------------------ one file
@@ -160,9 +165,14 @@ def _axial(table: Table, sid: str, radius: float, points: int, detect: bool) -> 
                          "gap_mm": res["gap_mm"].to_numpy()})
     noise = _noise(tt[keep], -F[keep] / area, bins, ramps, stress, runs, res["n"].to_numpy(),
                    rest_sd / area)
+    off = seg.out_of_contact(stress, rows["branch"].to_numpy(object), runs,
+                             CONTACT_BAND * noise["sd"])
+    rows["in_contact"] = (~off).astype(np.int64)
+    events = _contact_events(off, rows)
     holds = _holds(tt, branch, keep)
     spec = {"height_mm": h, "contact_gap_mm": h, "contact_uncertainty_mm": unc,
-            "preload_mN": preload, "height_source": "contact" if detect else "first gap"}
+            "preload_mN": preload, "height_source": "contact" if detect else "first gap",
+            "contact_events": "; ".join(events) or "none"}
     if detect:
         k1, k2 = seg.CONTACT_K
         where = (f"contact gap {h:.3f} ± {unc:.3f} mm (k = {k1:g}/{k2:g}"
@@ -173,8 +183,32 @@ def _axial(table: Table, sid: str, radius: float, points: int, detect: bool) -> 
 
     info = (f"compression_tension, amplitude {amp:.2f}, {int(cyc.max())} cycle(s), {where}, "
             f"force at start {preload:.1f} mN, {len(rows)} points in {runs.max() + 1} "
-            f"ramps, {holds}")
+            f"ramps, {holds}, "
+            + (f"{int(off.sum())} points out of contact ({'; '.join(events)})" if events
+               else "in contact throughout"))
     return spec, rows, {"stress": noise}, info
+
+
+def _contact_events(off: np.ndarray, rows: pd.DataFrame) -> list[str]:
+    """Lift-off (the first point off the specimen on an unloading ramp) and re-contact (the
+    first point in contact after a loading ramp's opening points off it), by cycle."""
+    out = []
+    cyc, ramps = _ramps_out(rows)
+    stretch = rows[STRETCH].to_numpy()
+    branch = rows["branch"].to_numpy(object)
+    for a, b in seg.runs(ramps):
+        o = off[a:b]
+        if not o.any():
+            continue
+        if branch[a] == UNLOADING:
+            i = a + int(np.argmax(o))
+            out.append(f"lift-off in cycle {cyc[a]} at stretch {stretch[i]:.3f}")
+        elif not o.all():
+            i = a + int(np.argmin(o))
+            out.append(f"re-contact in cycle {cyc[a]} at stretch {stretch[i]:.3f}")
+        else:
+            out.append(f"no contact in cycle {cyc[a]} loading")
+    return out
 
 
 def _holds(t, branch, keep) -> str:

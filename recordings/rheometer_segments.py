@@ -14,6 +14,8 @@ The signal functions below take plain arrays in the project's units and never to
 * :func:`find_contact`: the contact point from the normal force (see its docstring).
 * :func:`segment`: cycles and branches from the control signal; holds are marked.
 * :func:`resample`: bin averages, ``n`` bins of equal width of the control per ramp.
+* :func:`out_of_contact`: the resampled points recorded while the plate was off the
+  specimen (lift-off on unloading, before re-contact on reloading).
 * :func:`detrended_sd`, :func:`bin_sd`, :func:`second_diff_sd`, :func:`repeat_factor`:
   the noise of a channel at rest, within the resampling bins, and of a resampled curve.
 """
@@ -39,6 +41,7 @@ MIN_RUN = 3  # shorter runs of one direction are holds (single-sample jumps of t
 MOTION_FRACTION = 1e-3  # the plate starts moving when the gap leaves its first value by this
 # fraction of the whole travel (a reading at rest flickers by its resolution)
 PRELOAD_SECANT = 5.0  # preloaded traces: secant stiffness from the preload to 5x the preload
+OFF_SHARE = 0.8  # lift-off / before re-contact: this share of the points within the band
 MIN_BIN = 4  # fewest samples of a bin used for the within-bin noise
 _TRUNC_3 = 1.0 - 6.0 * math.exp(-4.5) / math.sqrt(2.0 * math.pi) / math.erf(3.0 / math.sqrt(2.0))
 
@@ -380,6 +383,35 @@ def ramp_ids(cycle: np.ndarray, branch: np.ndarray) -> np.ndarray:
     if key.size:
         ids[1:] = np.cumsum(key[1:] != key[:-1])
     return ids
+
+
+def out_of_contact(force: np.ndarray, branch: np.ndarray, ramps: np.ndarray,
+                   tol: float, share: float = OFF_SHARE) -> np.ndarray:
+    """Which points of a compression were recorded with the plate off the specimen.
+
+    ``force`` is the resampled force (any unit, zero when nothing touches the plate),
+    ``tol`` its noise band (e.g. 3 noise SDs).  On an unloading ramp the specimen has lifted
+    off at the first point within ``tol`` of zero from which on at least ``share`` of the
+    ramp's points are (a moist specimen may first pull on the plate: that is still contact;
+    a spike of the drive at the turn does not end the lift-off); on a loading ramp the
+    points up to the last within ``tol`` before which at least ``share`` are, are before the
+    re-contact.
+    """
+    off = np.zeros(force.size, dtype=bool)
+    small = np.abs(force) <= tol
+    for a, b in runs(ramps):
+        s = small[a:b]
+        if branch[a] == UNLOADING:
+            tail = np.cumsum(s[::-1])[::-1] / np.arange(s.size, 0, -1)  # share from i on
+            ok = np.flatnonzero(s & (tail >= share))
+            if ok.size:
+                off[a + ok[0]:b] = True
+        elif branch[a] == LOADING:
+            head = np.cumsum(s) / np.arange(1, s.size + 1)  # share up to i
+            ok = np.flatnonzero(s & (head >= share))
+            if ok.size:
+                off[a:a + ok[-1] + 1] = True
+    return off
 
 
 def bin_index(x: np.ndarray, ramps: np.ndarray, n: int) -> np.ndarray:

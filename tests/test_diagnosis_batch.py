@@ -134,3 +134,22 @@ def test_a_finer_mesh_that_cannot_follow_leaves_the_model_uncorrected_and_says_s
     got = {str(k): v for k, v in base.values.items()}
     assert got["mu_0"] == pytest.approx(1.3, rel=1e-6)
     assert got["alpha_0"] == pytest.approx(-15.0, rel=1e-6)
+
+
+def test_points_off_the_specimen_are_reported_apart():
+    """The misfit on the points recorded after a lift-off is stated apart from the rest
+    (unit noise: the RMS is the plain RMS of the residual)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    import pandas as pd
+
+    obs = pd.DataFrame({"value": np.zeros(6), "in_contact": [1, 1, 1, 1, 0, 0]})
+    fit = SimpleNamespace
+    d = SimpleNamespace(obs=obs, noise=SimpleNamespace(sd=lambda: np.ones(6)),
+                        base=fit(prediction=np.array([1.0, -1, 1, -1, 4, 4])),
+                        final=fit(prediction=np.array([0.5, -0.5, 0.5, -0.5, 3, 3])))
+    (note,) = batch.contact_notes(d)
+    assert note.startswith("2 of 6 points") and "on them 4.00 (base) -> 3.00" in note
+    assert "in contact 1.00 -> 0.50" in note
+    assert batch.contact_notes(SimpleNamespace(obs=obs.assign(in_contact=1))) == []
