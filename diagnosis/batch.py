@@ -143,8 +143,6 @@ def groups_markdown(results: dict, groups: dict) -> str:
     """Across the specimens of each group: verdicts, how often each effect is named, the
     refit parameters (median and range), RMS against the noise before and after, and what
     the final models leave."""
-    import numpy as np
-
     lines = ["# Across specimens, by group", "",
              "| group | n | verdicts | effects named | RMS/noise before, median (range) | "
              "after | after <= before / 2 where named | what remains (most often) |",
@@ -159,6 +157,7 @@ def groups_markdown(results: dict, groups: dict) -> str:
             lines.append(f"| {g} | 0 | {_fmt(verdicts)} | - | - | - | - | - |")
             continue
         effects = _counts(e for r in rs for e in r.get("effects", []))
+        tried = _counts("+".join(sorted(r["tried"])) for r in rs if r.get("tried"))
         before = np.array([r["rms_before"] for r in rs])
         after = np.array([r["rms_after"] for r in rs])
         named = [r for r in rs if r.get("effects")]
@@ -166,7 +165,8 @@ def groups_markdown(results: dict, groups: dict) -> str:
         left = _counts((r.get("remaining", {}).get("located") or [{}])[0].get("segment", "-")
                        for r in rs if r.get("status") in ("partially explained", "unexplained"))
         lines.append(
-            f"| {g} | {len(rs)} | {_fmt(verdicts)} | {_fmt(effects) or '-'} | "
+            f"| {g} | {len(rs)} | {_fmt(verdicts)} | {_fmt(effects) or '-'}"
+            + (f" (tried, not named: {_fmt(tried)})" if tried else "") + " | "
             f"{np.median(before):.2f} ({before.min():.2f}-{before.max():.2f}) | "
             f"{np.median(after):.2f} ({after.min():.2f}-{after.max():.2f}) | "
             f"{f'{halved}/{len(named)}' if named else '-'} | {_fmt(left) or '-'} |")
