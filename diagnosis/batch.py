@@ -151,7 +151,7 @@ def groups_markdown(results: dict, groups: dict) -> str:
                     "", "| group | parameter | n | median | min | max |",
                     "|---|---|---|---|---|---|"]
     for g in dict.fromkeys(groups.values()):
-        verdicts = _counts(results[n]["verdict"] for n in results if groups.get(n) == g)
+        verdicts = _counts(_verdict(results[n]) for n in results if groups.get(n) == g)
         rs = [results[n] for n in results if groups.get(n) == g and "error" not in results[n]]
         if not rs:
             lines.append(f"| {g} | 0 | {_fmt(verdicts)} | - | - | - | - | - |")
@@ -177,6 +177,10 @@ def groups_markdown(results: dict, groups: dict) -> str:
             params_lines.append(f"| {g} | {k} | {len(v)} | {np.median(v):.4g} | "
                                 f"{v.min():.4g} | {v.max():.4g} |")
     return "\n".join(lines + params_lines) + "\n"
+
+
+def _verdict(r: dict) -> str:
+    return r["verdict"] + (" (cannot tell)" if r.get("cannot_tell") else "")
 
 
 def _counts(items) -> dict:
@@ -252,7 +256,8 @@ def _claim(out: Path, config: dict) -> str | None:
 
 
 def _digest(r: dict) -> dict:
-    keys = ("verdict", "effects", "status", "rms_before", "rms_after", "error")
+    keys = ("verdict", "effects", "status", "tried", "cannot_tell", "rms_before", "rms_after",
+            "error")
     return {k: r[k] for k in keys if k in r}
 
 
@@ -267,11 +272,11 @@ def summary_markdown(results: dict) -> str:
             continue
         where = r["located"][0]["segment"] if r.get("located") else "-"
         left = r.get("remaining", {}).get("located") or []
-        lines.append(f"| {n} | {r['verdict']} | {r.get('status', '-')} | "
+        lines.append(f"| {n} | {_verdict(r)} | {r.get('status', '-')} | "
                      f"{r['rms_before']:.2f} -> {r['rms_after']:.2f} | {where} | "
                      f"{left[0]['segment'] if left else '-'} |")
     counts: dict[str, int] = {}
     for r in results.values():
-        counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1
+        counts[_verdict(r)] = counts.get(_verdict(r), 0) + 1
     lines += ["", "Verdicts: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))]
     return "\n".join(lines) + "\n"

@@ -53,13 +53,17 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-5"
+ENGINE_VERSION = "2026.11-open-world-6"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
 # least halve the RMS misfit (in units of the noise); otherwise the misfit is something else
 # and the verdict is ``unexplained``, with the library's closest model beside it
 EXPLAINS_FRACTION = 0.5
+# Without a repeated ramp, wander and a smooth misfit cannot be told apart: when the noise
+# model needs a wander this many times the stated instrument noise to call the residual
+# noise, the diagnosis says it cannot tell instead of "nothing to explain"
+WANDER_FACTOR = 5.0
 
 
 @dataclass
@@ -78,6 +82,7 @@ class Diagnosis:
     obs: pd.DataFrame
     notes: list = field(default_factory=list)
     tried: list = field(default_factory=list)  # effects fitted that explain too little
+    cannot_tell: str = ""  # why a `none`/`explained` may hide a misfit taken for wander
 
     @property
     def verdict(self) -> str:
@@ -135,6 +140,7 @@ class Diagnosis:
             "remaining": rem,
             "closest": self.closest() if self.status == "unexplained" else [],
             "tried": list(self.tried),
+            "cannot_tell": self.cannot_tell,
             "ranking": self.ranking,
             "rounds": [{"from": "+".join(r.current) or "base", "added": r.added,
                         "dropped": r.dropped, "table": r.table} for r in self.rounds],
@@ -239,6 +245,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         notes.append(f"the library's closest model ({'+'.join(sorted(tried))}) leaves "
                      f"{100 * _rms(obs, current, sd) / _rms(obs, base, sd):.0f} % of the "
                      f"base RMS misfit; an effect is named only when it at least halves it")
+    doubt = _cannot_tell(status, rem, final_noise, noise)
     if rem["reproducible"]["repeats"] == "none":
         notes.append("no repeated ramp (one pass of each): wander and a smooth misfit cannot "
                      "be told apart by repetition; only the located test applies")
@@ -246,7 +253,23 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         log.warning("%s and %s cannot be told apart with these tests (dBIC %.1f); %s",
                     *a["effects"], a["delta_bic"], a["separating_test"])
     return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
-                     ambiguous, disc, time.perf_counter() - t0, obs, notes, tried)
+                     ambiguous, disc, time.perf_counter() - t0, obs, notes, tried, doubt)
+
+
+def _cannot_tell(status: str, rem: dict, nm: NoiseModel, stated: dict | None) -> str:
+    """Why a verdict of no (further) systematic misfit cannot be trusted, or ''."""
+    if status not in ("none", "explained") or rem["reproducible"]["repeats"] != "none" \
+            or not stated:
+        return ""
+    loud = [(k, v["correlated"], stated[k.rsplit("/", 1)[1]])
+            for k, v in nm.describe().items() if k.rsplit("/", 1)[1] in stated
+            and v["correlated"] > WANDER_FACTOR * stated[k.rsplit("/", 1)[1]]]
+    if not loud:
+        return ""
+    k, corr, sd = max(loud, key=lambda x: x[1] / x[2])
+    return (f"without a repeated ramp, the residual of {k} passes as noise only with a "
+            f"wander of SD {corr:.3g}, {corr / sd:.0f} times the stated instrument noise "
+            f"{sd:.3g}: a smooth misfit and wander cannot be told apart here")
 
 
 def decide(chosen: list, systematic: bool, rms_before: float, rms_after: float

@@ -54,12 +54,14 @@ def _write(d, out: Path, title: str) -> dict:
     lines = [f"# {title}", "", f"**Verdict: {d.verdict}** ({d.status})"
              + (f" — {named}" if named else ""), "",
              (TRIED_TEXT.format("+".join(sorted(d.tried))) if d.tried
-              else STATUS_TEXT[d.status]) + ".", "",
-             f"Residual RMS / noise: {res['rms_before']:.2f} (base) -> "
-             f"{res['rms_after']:.2f} (after modelling); 1 = noise level.", "",
-             "## Where the base model misfits", "",
-             "Residuals whitened by the rig's noise model (white noise, wander, drift; "
-             "estimated from the final model's residual).", ""]
+              else STATUS_TEXT[d.status]) + ".", ""]
+    if d.cannot_tell:
+        lines += [f"**Cannot tell**: {d.cannot_tell}.", ""]
+    lines += [f"Residual RMS / noise: {res['rms_before']:.2f} (base) -> "
+              f"{res['rms_after']:.2f} (after modelling); 1 = noise level.", "",
+              "## Where the base model misfits", "",
+              "Residuals whitened by the rig's noise model (white noise, wander, drift; "
+              "estimated from the final model's residual).", ""]
     lines += _segments(res["located"])
     lines += ["", "![mismatch map](mismatch_map.png)", "", "## What remains", ""]
     rem = res["remaining"]

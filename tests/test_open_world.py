@@ -85,3 +85,23 @@ def test_an_effect_that_does_not_halve_the_misfit_is_not_named():
     assert decide(["mullins"], False, 1.46, 1.40) == ("explained", ["mullins"], [])
     assert decide([], True, 3.0, 3.0) == ("unexplained", [], [])
     assert decide([], False, 1.0, 1.0) == ("none", [], [])
+
+
+def test_wander_far_above_the_stated_noise_is_a_cannot_tell():
+    """A single loading ramp of a real torsion (fungi shear 1): its residual passed as noise
+    only with a wander of SD 3.08 mN mm against the instrument's 0.074: `cannot tell`,
+    not `nothing to explain`; with repeated ramps, or a wander within 5 times the stated
+    noise, no doubt is raised."""
+    from types import SimpleNamespace
+
+    from diagnosis.engine import _cannot_tell
+
+    nm = SimpleNamespace(describe=lambda: {"torsion_0.10/torque": {"correlated": 3.08}})
+    single = {"reproducible": {"repeats": "none"}}
+    doubt = _cannot_tell("none", single, nm, {"torque": 0.074})
+    assert "42 times the stated instrument noise" in doubt
+    assert _cannot_tell("none", {"reproducible": {"repeats": "cycles"}}, nm,
+                        {"torque": 0.074}) == ""
+    assert _cannot_tell("none", single, nm, {"torque": 0.7}) == ""
+    assert _cannot_tell("none", single, nm, None) == ""
+    assert _cannot_tell("unexplained", single, nm, {"torque": 0.074}) == ""
