@@ -74,6 +74,7 @@ class Round:
     added: str | None = None
     dropped: list = field(default_factory=list)
     noise: object = None
+    failed: list = field(default_factory=list)  # fitted but the model could not be solved
 
 
 def _names(ctx: Context, effects: list) -> list:
@@ -141,7 +142,8 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
                                                label[e], RANKING_NFEV),
                         lambda e: best[e].seconds)
     fits = {e: f for e, f in zip(to_fit, results, strict=True) if f is not None}
-    return Round(list(current_effects), best, fits, [])
+    failed = [e for e, f in zip(to_fit, results, strict=True) if f is None]
+    return Round(list(current_effects), best, fits, [], failed=failed)
 
 
 def compare(ctx: Context, rnd: Round, current: Fit, m: int, noise) -> list:
@@ -165,7 +167,9 @@ def compare(ctx: Context, rnd: Round, current: Fit, m: int, noise) -> list:
         if e not in rnd.fits:
             table.append({"effect": e, "chi2": float("nan"), "lrt": float("nan"),
                           "p_value": float("nan"), "delta_bic": float("nan"),
-                          "significant": False, "score": s.lm, "screened_out": True,
+                          "significant": False, "score": s.lm,
+                          **({"fit_failed": True} if e in rnd.failed else
+                             {"screened_out": True}),
                           "parameters": {}, "stderr": {}})
     table.sort(key=lambda r: (math.isnan(r["delta_bic"]), r["delta_bic"], -r["score"]))
     return table
