@@ -46,7 +46,6 @@ def _diagnose_one(name, rec, specs, target: Path, *, refinement, effects, nu0, n
         d = diagnose(sim, obs, fine_sim=fine, effects=effects, comm=comm, noise=noise,
                      progress=lambda what: bar.update(1, what))
     log.info("%s: verdict %s", name, d.verdict)
-    d.notes.extend(contact_notes(d))
     if comm.rank == 0:
         return report.write(d, target, title=f"Diagnosis of specimen {name}")
     return {}
@@ -188,28 +187,6 @@ def _counts(items) -> dict:
     for x in items:
         out[x] = out.get(x, 0) + 1
     return dict(sorted(out.items(), key=lambda kv: -kv[1]))
-
-
-def contact_notes(d) -> list[str]:
-    """What the points recorded off the specimen (``in_contact`` = 0: after a lift-off,
-    before a re-contact) do to the misfit: the model keeps both ends glued and cannot
-    follow them."""
-    obs = d.obs
-    if "in_contact" not in obs or obs["in_contact"].all():
-        return []
-    off = obs["in_contact"].to_numpy() == 0
-    sd = d.noise.sd()
-
-    def rms(f, m):
-        r = (f.prediction - obs["value"].to_numpy(float))[m] / sd[m]
-        return float(np.sqrt(np.mean(r**2)))
-
-    return [f"{int(off.sum())} of {off.size} points were recorded with the plate off the "
-            "specimen (lift-off on unloading, before the re-contact on reloading: "
-            "in_contact = 0); the model keeps both ends glued and cannot follow them (no "
-            "lift-off end condition): RMS misfit / noise on them "
-            f"{rms(d.base, off):.2f} (base) -> {rms(d.final, off):.2f}, on the points in "
-            f"contact {rms(d.base, ~off):.2f} -> {rms(d.final, ~off):.2f}"]
 
 
 def _fmt(counts: dict) -> str:

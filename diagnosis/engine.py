@@ -239,12 +239,12 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     located = loc.locate(obs, final_noise.whiten(_residual(obs, base)), 1.0,
                           sigma_dof=final_noise.dof)
     sd = final_noise.sd()
-    status, chosen, tried = decide(chosen, rem["systematic"], _rms(obs, base, sd),
-                                   _rms(obs, current, sd))
+    rms_base, rms_final = _rms(obs, base, sd), _rms(obs, current, sd)
+    status, chosen, tried = decide(chosen, rem["systematic"], rms_base, rms_final)
     if tried:
         notes.append(f"the library's closest model ({'+'.join(sorted(tried))}) leaves "
-                     f"{100 * _rms(obs, current, sd) / _rms(obs, base, sd):.0f} % of the "
-                     f"base RMS misfit; an effect is named only when it at least halves it")
+                     f"{100 * rms_final / rms_base:.0f} % of the base RMS misfit; an effect "
+                     "is named only when it at least halves it")
     doubt = _cannot_tell(status, rem, final_noise, noise)
     if rem["reproducible"]["repeats"] == "none":
         notes.append("no repeated ramp (one pass of each): wander and a smooth misfit cannot "
@@ -252,6 +252,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     for a in ambiguous:
         log.warning("%s and %s cannot be told apart with these tests (dBIC %.1f); %s",
                     *a["effects"], a["delta_bic"], a["separating_test"])
+    notes += contact_notes(obs, base, current, sd)
     return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
                      ambiguous, disc, time.perf_counter() - t0, obs, notes, tried, doubt)
 
@@ -261,9 +262,11 @@ def _cannot_tell(status: str, rem: dict, nm: NoiseModel, stated: dict | None) ->
     if status not in ("none", "explained") or rem["reproducible"]["repeats"] != "none" \
             or not stated:
         return ""
-    loud = [(k, v["correlated"], stated[k.rsplit("/", 1)[1]])
-            for k, v in nm.describe().items() if k.rsplit("/", 1)[1] in stated
-            and v["correlated"] > WANDER_FACTOR * stated[k.rsplit("/", 1)[1]]]
+    loud = []
+    for k, v in nm.describe().items():
+        sd = stated.get(k.rsplit("/", 1)[1])
+        if sd is not None and v["correlated"] > WANDER_FACTOR * sd:
+            loud.append((k, v["correlated"], sd))
     if not loud:
         return ""
     k, corr, sd = max(loud, key=lambda x: x[1] / x[2])
@@ -287,8 +290,25 @@ def decide(chosen: list, systematic: bool, rms_before: float, rms_after: float
     return "unexplained", [], list(chosen)
 
 
-def _rms(obs, f: Fit, sd: np.ndarray) -> float:
-    return float(np.sqrt(np.mean((_residual(obs, f) / sd) ** 2)))
+def _rms(obs, f: Fit, sd: np.ndarray, rows=slice(None)) -> float:
+    """RMS of ``f``'s residual in units of ``sd`` (per row), over ``rows``."""
+    return float(np.sqrt(np.mean((_residual(obs, f)[rows] / sd[rows]) ** 2)))
+
+
+def contact_notes(obs, base: Fit, final: Fit, sd: np.ndarray) -> list[str]:
+    """What the points recorded off the specimen (``in_contact`` = 0: after a lift-off,
+    before a re-contact) do to the misfit: the model keeps both ends glued and cannot
+    follow them."""
+    if "in_contact" not in obs or obs["in_contact"].all():
+        return []
+    off = obs["in_contact"].to_numpy() == 0
+    return [f"{int(off.sum())} of {off.size} points were recorded with the plate off the "
+            "specimen (lift-off on unloading, before the re-contact on reloading: "
+            "in_contact = 0); the model keeps both ends glued and cannot follow them (no "
+            "lift-off end condition): RMS misfit / noise on them "
+            f"{_rms(obs, base, sd, off):.2f} (base) -> {_rms(obs, final, sd, off):.2f}, on "
+            f"the points in contact {_rms(obs, base, sd, ~off):.2f} -> "
+            f"{_rms(obs, final, sd, ~off):.2f}"]
 
 
 def _what_remains(obs, current: Fit, stated, alpha, bic_margin):

@@ -168,7 +168,7 @@ def _axial(table: Table, sid: str, radius: float, points: int, detect: bool) -> 
     off = seg.out_of_contact(stress, rows["branch"].to_numpy(object), runs,
                              CONTACT_BAND * noise["sd"])
     rows["in_contact"] = (~off).astype(np.int64)
-    events = _contact_events(off, rows)
+    events = _contact_events(off, cyc, runs, rows)
     holds = _holds(tt, branch, keep)
     spec = {"height_mm": h, "contact_gap_mm": h, "contact_uncertainty_mm": unc,
             "preload_mN": preload, "height_source": "contact" if detect else "first gap",
@@ -189,11 +189,12 @@ def _axial(table: Table, sid: str, radius: float, points: int, detect: bool) -> 
     return spec, rows, {"stress": noise}, info
 
 
-def _contact_events(off: np.ndarray, rows: pd.DataFrame) -> list[str]:
+def _contact_events(off: np.ndarray, cyc: np.ndarray, ramps: np.ndarray,
+                    rows: pd.DataFrame) -> list[str]:
     """Lift-off (the first point off the specimen on an unloading ramp) and re-contact (the
-    first point in contact after a loading ramp's opening points off it), by cycle."""
+    first point in contact after a loading ramp's opening points off it), by cycle;
+    ``cyc`` and ``ramps``: cycle and ramp number of each row."""
     out = []
-    cyc, ramps = _ramps_out(rows)
     stretch = rows[STRETCH].to_numpy()
     branch = rows["branch"].to_numpy(object)
     for a, b in seg.runs(ramps):

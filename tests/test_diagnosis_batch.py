@@ -144,12 +144,13 @@ def test_points_off_the_specimen_are_reported_apart():
     import numpy as np
     import pandas as pd
 
+    from diagnosis.engine import contact_notes
+
     obs = pd.DataFrame({"value": np.zeros(6), "in_contact": [1, 1, 1, 1, 0, 0]})
     fit = SimpleNamespace
-    d = SimpleNamespace(obs=obs, noise=SimpleNamespace(sd=lambda: np.ones(6)),
-                        base=fit(prediction=np.array([1.0, -1, 1, -1, 4, 4])),
-                        final=fit(prediction=np.array([0.5, -0.5, 0.5, -0.5, 3, 3])))
-    (note,) = batch.contact_notes(d)
+    base = fit(prediction=np.array([1.0, -1, 1, -1, 4, 4]))
+    final = fit(prediction=np.array([0.5, -0.5, 0.5, -0.5, 3, 3]))
+    (note,) = contact_notes(obs, base, final, np.ones(6))
     assert note.startswith("2 of 6 points") and "on them 4.00 (base) -> 3.00" in note
     assert "in contact 1.00 -> 0.50" in note
-    assert batch.contact_notes(SimpleNamespace(obs=obs.assign(in_contact=1))) == []
+    assert contact_notes(obs.assign(in_contact=1), base, final, np.ones(6)) == []
