@@ -66,6 +66,9 @@ print(case)
 """
 
 
+STAGES: dict = {}  # tree -> the diagnosis's own stage timings of every run (new trees)
+
+
 def _env(tree: Path) -> dict:
     env = dict(os.environ)
     env.update(PYTHONPATH=str(tree), OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1",
@@ -93,8 +96,9 @@ def diagnose(tree: Path, data: Path, ranks: int) -> float:
     t0 = time.perf_counter()
     subprocess.run(cmd, env=_env(tree), capture_output=True, text=True, check=True, cwd=tree)
     wall = time.perf_counter() - t0
-    verdict = json.loads((out / "d" / "diagnosis.json").read_text())["verdict"]
-    return wall, verdict
+    res = json.loads((out / "d" / "diagnosis.json").read_text())
+    STAGES.setdefault(str(tree), []).append(res.get("timings_s"))  # where the time went
+    return wall, res["verdict"]
 
 
 def main() -> None:
@@ -137,7 +141,8 @@ def main() -> None:
         print(f"verdicts: old {verdicts['old']}, new {verdicts['new']}")
     (HERE / "results").mkdir(exist_ok=True)
     (HERE / "results" / "compare_trees.json").write_text(json.dumps(
-        {"old": str(a.old), "times": times, "verdicts": verdicts}, indent=1))
+        {"old": str(a.old), "times": times, "verdicts": verdicts, "stages": STAGES},
+        indent=1))
 
 
 if __name__ == "__main__":

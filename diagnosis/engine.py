@@ -83,6 +83,7 @@ class Diagnosis:
     notes: list = field(default_factory=list)
     tried: list = field(default_factory=list)  # effects fitted that explain too little
     cannot_tell: str = ""  # why a `none`/`explained` may hide a misfit taken for wander
+    timings: dict = field(default_factory=dict)  # wall time of each stage [s]
 
     @property
     def verdict(self) -> str:
@@ -159,6 +160,7 @@ class Diagnosis:
             "base_bias": bias,
             "discretisation": self.discretisation,
             "elapsed_s": self.elapsed_s,
+            "timings_s": self.timings,
         }
 
 
@@ -195,6 +197,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     check_effects(effects, sim.kind)
     with _sharing(sim, comm), _sharing(fine_sim, comm):  # the ranks share every curve
         base, weights, disc, J_base = _base(sim, fine_sim, obs, noise)
+    timings = {"base_fit_and_correction": round(time.perf_counter() - t0, 2), "rounds": []}
     if progress:
         progress("base")
     lib = library(sim.kind)
@@ -207,9 +210,11 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         cands = [e for e in (effects or lib) if e not in chosen and compatible(e, chosen)]
         if not cands:
             break
+        t_round = time.perf_counter()
         rnd = run_round(ctx, current, chosen, cands, J, progress,
                         first=rounds[0] if rounds else None)
         rounds.append(rnd)
+        timings["rounds"].append(rnd.timings())
         if not rnd.fits:
             rnd.noise = _noise_of(obs, current, noise)
             rnd.table = compare(ctx, rnd, current, len(cands), rnd.noise)
@@ -234,6 +239,10 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         if not rem["systematic"]:  # explained: no further effect can earn a place
             break
         J = _jacobian(sim, comm, current, _all_names(lib, chosen))
+        timings["rounds"][-1]["whole_round"] = round(time.perf_counter() - t_round, 2)
+    t_end = time.perf_counter()
+    if rounds and "whole_round" not in timings["rounds"][-1]:  # the round that stopped
+        timings["rounds"][-1]["whole_round"] = round(t_end - t_round, 2)
     if final_noise is None or final_noise.fitted_to is not current:
         final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
     located = loc.locate(obs, final_noise.whiten(_residual(obs, base)), 1.0,
@@ -253,8 +262,10 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         log.warning("%s and %s cannot be told apart with these tests (dBIC %.1f); %s",
                     *a["effects"], a["delta_bic"], a["separating_test"])
     notes += contact_notes(obs, base, current, sd)
+    timings["noise_locate_decide"] = round(time.perf_counter() - t_end, 2)
     return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
-                     ambiguous, disc, time.perf_counter() - t0, obs, notes, tried, doubt)
+                     ambiguous, disc, time.perf_counter() - t0, obs, notes, tried, doubt,
+                     timings)
 
 
 def _cannot_tell(status: str, rem: dict, nm: NoiseModel, stated: dict | None) -> str:
@@ -419,7 +430,7 @@ def _base(sim, fine_sim, obs, stated):
         rel = np.abs(sim.correction) / sigma
         disc.update(max_over_noise=float(rel.max()), rms_over_noise=float(
             np.sqrt(np.mean(rel**2))))
-    return base, sigma, disc, sim.predict(base.values, names).jacobian
+    return base, sigma, disc, base.jacobian
 
 
 @contextlib.contextmanager

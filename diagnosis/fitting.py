@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -68,6 +69,7 @@ class Fit:
     stderr: dict = field(default_factory=dict)
     converged: bool = True  # False when the evaluation budget ended the fit
     jacobian: np.ndarray | None = None  # d prediction / d parameters at the optimum
+    seconds: float = 0.0  # wall time of the fit
 
     @property
     def k(self) -> int:
@@ -94,6 +96,7 @@ def _bounds(names, effect=None):
 def fit(sim, obs: pd.DataFrame, sigma: np.ndarray, start: dict, names: list, *,
         effect: str = "base", max_nfev: int = 20, effect_def=None) -> Fit:
     """Trust-region least squares of z = (y(values) - value) / sigma over ``names``."""
+    t0 = time.perf_counter()
     names = [Param.parse(n) for n in names]
     start = {Param.parse(k): v for k, v in start.items()}
     if effect_def is None and effect != "base":
@@ -133,7 +136,8 @@ def fit(sim, obs: pd.DataFrame, sigma: np.ndarray, start: dict, names: list, *,
     except np.linalg.LinAlgError:  # pragma: no cover
         pass
     return Fit(effect, list(names), vals, float(z @ z), len(z), p.y, z, int(res.nfev), stderr,
-               converged=res.status > 0, jacobian=p.jacobian)
+               converged=res.status > 0, jacobian=p.jacobian,
+               seconds=time.perf_counter() - t0)
 
 
 def initial_guess(obs: pd.DataFrame) -> dict:

@@ -118,6 +118,19 @@ def _write(d, out: Path, title: str) -> dict:
     elif disc.get("not_corrected_because"):
         lines += ["", "Discretisation: **not corrected** (" + disc["not_corrected_because"]
                   + "); the working mesh's discretisation error may be part of the misfit."]
-    lines += ["", f"Elapsed: {res['elapsed_s']:.0f} s."]
+    lines += ["", f"Elapsed: {res['elapsed_s']:.0f} s{_where_the_time_went(res)}."]
     write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
     return res
+
+
+def _where_the_time_went(res: dict) -> str:
+    t = res.get("timings_s") or {}
+    if not t:
+        return ""
+    parts = [f"base fit and discretisation correction {t['base_fit_and_correction']:.0f} s"]
+    for i, r in enumerate(t["rounds"], 1):
+        fits = ", ".join(f"{e} {v['s']:.0f} s/{v['evaluations']} evaluations"
+                         for e, v in r["fit_per_candidate"].items())
+        parts.append(f"round {i}: scores {r['scores']:.0f} s, fits {r['fits']:.0f} s"
+                     + (f" ({fits})" if fits else ""))
+    return " (" + "; ".join(parts) + ")"

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -75,6 +76,14 @@ class Round:
     dropped: list = field(default_factory=list)
     noise: object = None
     failed: list = field(default_factory=list)  # fitted but the model could not be solved
+    seconds: dict = field(default_factory=dict)  # wall time of the round's stages
+
+    def timings(self) -> dict:
+        """Wall time of the scores and fits [s] (with MPI: of the whole rank group) and
+        the cost of each candidate's fit (on the rank that made it) with its evaluations."""
+        return {**{k: round(v, 2) for k, v in self.seconds.items()},
+                "fit_per_candidate": {e: {"s": round(f.seconds, 2), "evaluations": f.nfev}
+                                      for e, f in self.fits.items()}}
 
 
 def _names(ctx: Context, effects: list) -> list:
@@ -108,6 +117,7 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
     another effect in practice, and every later round follows the recorded path of a
     history model, where a score costs several seconds."""
     obs, sim = ctx.obs, ctx.sim
+    t0 = time.perf_counter()
     names = _names(ctx, current_effects)
     if first is None:
         geometry = getattr(sim, "geometry", None)
@@ -135,6 +145,7 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
     m = max(len(candidates), 1)
     to_fit = [e for e in candidates if e in best and best[e].lm >= SCREEN_FRACTION
               * ctx.needed(len(ctx.lib[e].names), m)]
+    t1 = time.perf_counter()
     if progress:
         progress(f"+{'+'.join(current_effects) or 'base'}: fitting {', '.join(to_fit) or '-'}")
     label = {e: "+".join([*current_effects, e]) for e in to_fit}
@@ -143,7 +154,11 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
                         lambda e: best[e].seconds)
     fits = {e: f for e, f in zip(to_fit, results, strict=True) if f is not None}
     failed = [e for e, f in zip(to_fit, results, strict=True) if f is None]
-    return Round(list(current_effects), best, fits, [], failed=failed)
+    seconds = {"scores": t1 - t0, "fits": time.perf_counter() - t1}
+    log.info("round from %s: %d design points scored in %.1f s, %d candidates fitted in "
+             "%.1f s", "+".join(current_effects) or "base", len(points), seconds["scores"],
+             len(to_fit), seconds["fits"])
+    return Round(list(current_effects), best, fits, [], failed=failed, seconds=seconds)
 
 
 def compare(ctx: Context, rnd: Round, current: Fit, m: int, noise) -> list:
