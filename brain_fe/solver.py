@@ -53,6 +53,9 @@ class NewtonSolver:
         self.bcs = bcs
         self.atol, self.rtol, self.max_iterations = atol, rtol, max_iterations
         self.reuse, self.contraction = reuse, contraction
+        # lift the Dirichlet values at every iteration even where u already meets them
+        # (always under MPI: see :meth:`solve`)
+        self.lift_every_iteration = False
         self.A = fem_petsc.create_matrix(jacobian_form)
         self.b = fem_petsc.create_vector(residual_form)
         self.du = self.b.duplicate()
@@ -122,7 +125,7 @@ class NewtonSolver:
         # the identity rows of the Jacobian set them exactly.  Under MPI it is lifted at
         # every iteration: on DOLFINx 0.9 the ghosts of u need not hold the Dirichlet
         # values after an update (a distributed Maxwell run failed, KSP -11).
-        serial = self.comm.size == 1
+        serial = self.comm.size == 1 and not self.lift_every_iteration
         meets = before = False
         for it in range(self.max_iterations + 1):
             self._iteration = it
