@@ -53,7 +53,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-6"
+ENGINE_VERSION = "2026.11-open-world-7"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
@@ -219,10 +219,9 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
             rnd.noise = _noise_of(obs, current, noise)
             rnd.table = compare(ctx, rnd, current, len(cands), rnd.noise)
             break
-        leader = min(rnd.fits.values(), key=lambda f: f.chi2)
-        rnd.noise = _noise_of(obs, leader, noise)
-        rnd.table = compare(ctx, rnd, current, len(cands), rnd.noise)
-        sig = [r for r in rnd.table if r["significant"]]
+        sig = _judge(ctx, rnd, current, len(cands), noise)
+        if _complete_contenders(ctx, rnd, chosen, sig):  # the order may change
+            sig = _judge(ctx, rnd, current, len(cands), noise)
         if not sig:
             break
         added = sig[0]["effect"]
@@ -369,6 +368,36 @@ def _complete(ctx: Context, f: Fit, effects: list) -> Fit:
     more = fit(ctx.sim, ctx.obs, ctx.weights, f.values, f.names, effect=f.effect,
                max_nfev=ctx.max_nfev, effect_def=_union(ctx, effects))
     return more if more.chi2 <= f.chi2 else f
+
+
+def _judge(ctx: Context, rnd, current: Fit, m: int, stated) -> list:
+    """The round's noise model (from its best fit's residual) and table; returns the
+    significant rows, best first."""
+    leader = min(rnd.fits.values(), key=lambda f: f.chi2)
+    rnd.noise = _noise_of(ctx.obs, leader, stated)
+    rnd.table = compare(ctx, rnd, current, m, rnd.noise)
+    return [r for r in rnd.table if r["significant"]]
+
+
+def _complete_contenders(ctx: Context, rnd, chosen: list, sig: list) -> list:
+    """When several significant candidates are within the BIC margin of the best, run every
+    one of their fits that the ranking budget cut short to the end (shared among the
+    ranks): a competitor stopped early is judged on a worse fit than the leader's and
+    would lose a near tie for that reason alone.  Returns the effects completed."""
+    near = [r["effect"] for r in sig if r["delta_bic"] - sig[0]["delta_bic"] < ctx.bic_margin]
+    short = [e for e in near if not rnd.fits[e].converged] if len(near) > 1 else []
+    if short:
+        def run(e):
+            try:
+                return _complete(ctx, rnd.fits[e], [*chosen, e])
+            except Exception as exc:  # the ranking fit stands
+                log.warning("completing the fit of %s failed: %s", e, exc)
+                return rnd.fits[e]
+
+        done = ctx.share(short, run, lambda e: rnd.fits[e].seconds)
+        rnd.fits.update(zip(short, done, strict=True))
+        log.info("near tie between %s: completed the fits of %s", near, short)
+    return short
 
 
 def _union(ctx, effects):

@@ -105,3 +105,42 @@ def test_wander_far_above_the_stated_noise_is_a_cannot_tell():
     assert _cannot_tell("none", single, nm, {"torque": 0.7}) == ""
     assert _cannot_tell("none", single, nm, None) == ""
     assert _cannot_tell("unexplained", single, nm, {"torque": 0.074}) == ""
+
+
+def test_a_near_tie_is_judged_on_completed_fits(monkeypatch):
+    """Closed-benchmark case018 (a weak second Ogden term, base RMS 1.52 noise SDs): the
+    three-parameter offsets (fit converged) led the two-term fit that the ranking budget
+    had stopped after 8 evaluations by 0.7 in BIC, and the offsets were named.  Near ties
+    (within the BIC margin) now have every fit stopped short run to the end before the
+    choice; a lone significant candidate or converged contenders cost nothing more."""
+    from types import SimpleNamespace
+
+    import diagnosis.engine as eng
+
+    completed = []
+
+    def complete(ctx, f, effects):
+        completed.append(effects[-1])
+        return SimpleNamespace(converged=True, chi2=f.chi2 - 20.0, seconds=1.0)
+
+    monkeypatch.setattr(eng, "_complete", complete)
+    ctx = SimpleNamespace(bic_margin=10.0,
+                          share=lambda items, work, cost: [work(i) for i in items])
+    fits = {"artefacts": SimpleNamespace(converged=True, chi2=300.0, seconds=3.0),
+            "ogden_2term": SimpleNamespace(converged=False, chi2=305.5, seconds=3.3),
+            "compressibility": SimpleNamespace(converged=False, chi2=315.0, seconds=1.5),
+            "imperfect_gluing": SimpleNamespace(converged=False, chi2=360.0, seconds=2.7)}
+    rnd = SimpleNamespace(fits=dict(fits))
+    sig = [{"effect": "artefacts", "delta_bic": -44.4},
+           {"effect": "ogden_2term", "delta_bic": -43.7},
+           {"effect": "compressibility", "delta_bic": -40.4}]
+    assert eng._complete_contenders(ctx, rnd, [], sig) == ["ogden_2term", "compressibility"]
+    assert completed == ["ogden_2term", "compressibility"]
+    assert rnd.fits["ogden_2term"].chi2 == 285.5  # the completed fit replaces the short one
+    assert rnd.fits["imperfect_gluing"] is fits["imperfect_gluing"]  # not significant
+    completed.clear()
+    rnd = SimpleNamespace(fits=dict(fits))
+    assert eng._complete_contenders(ctx, rnd, [], sig[:1]) == []  # no tie
+    far = [sig[0], {"effect": "ogden_2term", "delta_bic": -30.0}]
+    assert eng._complete_contenders(ctx, rnd, [], far) == []  # beyond the margin
+    assert completed == []
