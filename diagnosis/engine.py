@@ -13,7 +13,8 @@
    best fit's residual: likelihood-ratio test (p < ``alpha`` / candidates) and BIC margin.
    An effect is added while one earns its place; earlier ones are re-tested in its
    presence.  Two effects within the BIC margin are reported as indistinguishable, with
-   the test that would separate them.
+   the test that would separate them; before such a near tie is decided, every fit of it
+   that the ranking budget stopped short is run to the end.
 3. **Locate and check**: the base residual and the final residual, whitened by the final
    noise model, are located along the protocol's axes (:mod:`diagnosis.locate`); what the
    final model leaves systematic (located, or reproducible across repetitions:
