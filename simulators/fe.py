@@ -100,6 +100,25 @@ class FESimulator:
         J = np.zeros((len(self.obs), len(wrt)))
         branches = self.path == "branches" or (self.path == "auto" and fm.state is None)
         c = self.shared
+        try:
+            self._solve_curves(fm, point, needed, branches, c, y, J)
+        except Exception as exc:  # noqa: BLE001 - every rank must learn of it
+            if c is None:
+                raise
+            failure = exc
+        else:
+            failure = None
+        if c is not None:  # each row was computed by one rank: the sum is exact
+            # a curve that failed on one rank fails the prediction on every rank (the
+            # others would otherwise wait for it in the sum below, for ever)
+            failures = [f for f in c.allgather(failure) if f is not None]
+            if failures:
+                raise failures[0]
+            y, J = c.allreduce(y), c.allreduce(J)
+        return Prediction(y + self.correction, J, wrt)
+
+    def _solve_curves(self, fm, point, needed, branches, c, y, J) -> None:
+        """Fill ``y`` and ``J`` with the rows of this rank's share of the curves."""
         for i, (_curve, path, rows) in enumerate(self.curves):
             if c is not None and i % c.size != c.rank:
                 continue
@@ -117,9 +136,6 @@ class FESimulator:
                 y[obs_rows] = vals[ch]
                 for j, d in enumerate(ders[ch]):
                     J[obs_rows, j] = d
-        if c is not None:  # each row was computed by one rank: the sum is exact
-            y, J = c.allreduce(y), c.allreduce(J)
-        return Prediction(y + self.correction, J, wrt)
 
     def _branches(self, fm, point, path, rows, needed):
         """Channels (and sensitivities) at the recorded controls by splines through the

@@ -233,6 +233,28 @@ def test_distributed_equals_serial():
     np.testing.assert_allclose(out[0], out[1], rtol=1e-8, atol=1e-10)
 
 
+@pytest.mark.mpi
+def test_a_curve_failing_on_one_rank_fails_the_shared_prediction():
+    """With the curves of a prediction shared among the ranks, a curve that fails on one
+    rank (here torsion between slip plates, refused) raises the same error on every rank;
+    before, the other rank waited for the failed one's rows for ever (a real double
+    compression that could not be solved hung `mpirun -n 2 brainmech diagnose`)."""
+    import pandas as pd
+
+    from simulators.fe import FESimulator
+
+    comm = MPI.COMM_WORLD
+    obs = pd.DataFrame({
+        "curve": ["ct"] * 3 + ["tor"] * 3, "test": ["compression_tension"] * 3
+        + ["torsion"] * 3, "amplitude": [0.1] * 3 + [0.2] * 3,
+        "channel": ["stress"] * 3 + ["torque"] * 3, "branch": "loading", "cycle": 1,
+        "control": [0.95, 0.92, 0.9, 0.05, 0.1, 0.2], "time_s": np.nan, "value": 0.0})
+    sim = FESimulator(obs, 4.0, 5.0, ends="slip")
+    assert [c for c, *_ in sim.curves] == ["ct", "tor"]  # one curve per rank
+    with sim.sharing(comm), pytest.raises(ValueError, match="torsion needs glued ends"):
+        sim.predict({"mu_0": 1.0, "alpha_0": -20.0, "nu0": 0.49})
+
+
 def test_cutback_recovers_then_fails_clearly(axi_slip):
     """One huge step (stretch 1 -> 0.4, alpha = -30) needs a cut-back and then matches the
     homogeneous solution to 0.1 %; with cut-backs disabled the error names the step."""
