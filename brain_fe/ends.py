@@ -8,6 +8,10 @@
   1/2 k_r u_r^2 + 1/2 k_theta (R (phi - phi_plate))^2 on both end faces; k -> infinity is
   glued, k_r = 0 is slip radially.  Its stiffnesses are the parameters ``k_r``, ``k_theta``
   (:class:`Interface`).
+* ``unglued`` (a shorthand of the forward model): glued tangentially, but the plate cannot
+  pull: rough (sandblasted) plates without glue, where the top plate lifts off instead of
+  pulling and touches the specimen again on reloading (:mod:`brain_fe.contact`).  Any
+  end condition can be made unable to pull (``ForwardModel(..., lift_off=True)``).
 
 The reactions (axial force, torque) are the action of the assembled residual on the virtual
 rigid motion of the top plate (reaction by virtual work), reduced over MPI ranks; with
@@ -27,6 +31,7 @@ from . import _compat
 from .parameters import K_R, K_THETA, Param, Parameters
 
 ENDS = ("glued", "slip", "springs")
+UNGLUED = "unglued"  # = glued tangentially + lift-off (:func:`resolve`)
 UR, UZ, PHI = 0, 1, 2  # components of the axisymmetric unknown
 
 
@@ -46,10 +51,17 @@ class Interface:
         return Parameters({K_R: self.k_r_kPa_mm, K_THETA: self.k_theta_kPa_mm})
 
 
+def resolve(ends: str, lift_off: bool = False) -> tuple[str, bool]:
+    """(tangential end condition, whether the plate cannot pull) of ``ends``."""
+    return ("glued", True) if ends == UNGLUED else (ends, lift_off)
+
+
 def check_ends(ends: str, geometry_kind: str, test: str | None = None) -> None:
     """The one check of an end condition against the geometry and the test."""
+    ends = resolve(ends)[0]
     if ends not in ENDS:
-        raise ValueError(f"ends must be one of {', '.join(ENDS)}, got {ends!r}")
+        raise ValueError(f"ends must be one of {', '.join((*ENDS, UNGLUED))}, "
+                         f"got {ends!r}")
     if ends == "springs" and geometry_kind != "axisymmetric":
         raise ValueError("interface springs are implemented for the axisymmetric model")
     if test == "torsion" and ends == "slip":
@@ -179,6 +191,11 @@ class EndConditions:
             for k in range(3):
                 arr[3 * self._top_nodes + k] = vals[:, k]
 
+    def set_axial(self, uz: float) -> None:
+        """Axial displacement [mm] of the top face at the current rotation (off the plate,
+        :mod:`brain_fe.contact`)."""
+        self.set_top(uz, float(self.c_twist.value))
+
     def w_torque(self):
         """Virtual rotation of the top plate (3D: about z at the current twist)."""
         if self.geometry.kind == "axisymmetric":
@@ -197,6 +214,12 @@ class EndConditions:
         if self.kind == "springs":
             return fz, _compat.assemble_scalar(self.spring_torque_form, comm)
         return fz, float(residual.dot(self.w_torque()))
+
+    @staticmethod
+    def tension(fz: float) -> float:
+        """The pull of the top plate on the specimen in an axial reaction ``fz`` (> 0:
+        tensile; the reactions count tension positive)."""
+        return fz
 
     def directional(self, vector) -> tuple[float, float]:
         """(axial, torque) components of a residual-like vector (sensitivities)."""

@@ -32,7 +32,8 @@ from petsc4py import PETSc
 from . import _compat
 from . import artefacts as _art
 from .artefacts import Artefacts
-from .ends import EndConditions, Interface, check_ends
+from .contact import LiftOff
+from .ends import EndConditions, Interface, check_ends, resolve
 from .geometry import Geometry
 from .history import HistoryState, history_residual
 from .materials import MaterialModel, MaterialParameters
@@ -52,14 +53,17 @@ class ForwardModel:
 
     ``material`` (a :class:`~brain_fe.materials.MaterialModel`) or the shorthand of the
     built-in composition: ``n_terms`` Ogden terms, ``volumetric`` law, ``maxwell`` branches,
-    ``mullins`` softening.  ``ends``: ``glued``, ``slip`` or ``springs``; ``degree``: of the
-    displacement (and twist) field.
+    ``mullins`` softening.  ``ends``: ``glued``, ``slip``, ``springs`` or ``unglued`` (glued
+    with ``lift_off``); ``lift_off``: the top plate cannot pull, it lifts off instead
+    (:mod:`brain_fe.contact`); ``degree``: of the displacement (and twist) field.
     """
 
     def __init__(self, geometry: Geometry, material: MaterialModel | None = None,
                  ends: str = "glued", degree: int = 2, *, n_terms: int = 1,
-                 volumetric: str = "quadratic", maxwell: int = 0, mullins: bool = False):
+                 volumetric: str = "quadratic", maxwell: int = 0, mullins: bool = False,
+                 lift_off: bool = False):
         check_ends(ends, geometry.kind)
+        ends, lift_off = resolve(ends, lift_off)
         self.material = material or MaterialModel.build(n_terms, volumetric, maxwell,
                                                          mullins)
         self.geometry, self.ends_kind = geometry, ends
@@ -87,8 +91,12 @@ class ForwardModel:
         log.debug("compiled %s forms in %.1f s", geometry.kind, self.compile_time_s)
         self.newton = NewtonSolver(self.comm, self.residual_form, self.jacobian_form, self.u,
                                    self.bcs)
-        # history-dependent models and glue springs follow their sensitivities along the path
-        self.path_sensitivities = self.state is not None or ends == "springs"
+        self.lift_off = LiftOff(self.newton, self.ends, self.reactions,
+                                self._axial_stiffness) if lift_off else None
+        # history-dependent models, glue springs and lift-off follow their sensitivities
+        # along the path
+        self.path_sensitivities = (self.state is not None or ends == "springs"
+                                   or self.lift_off is not None)
         self._sens = (PathSensitivities if self.path_sensitivities
                       else DirectSensitivities)(self)
         self.iterations = self.cutbacks = 0
@@ -148,6 +156,14 @@ class ForwardModel:
     def reactions(self) -> tuple[float, float]:
         """(axial force [mN], torque [mN mm]) on the top plate at the current state."""
         return self.ends.reactions(self.newton.assemble_residual(with_bcs=False), self.comm)
+
+    def _axial_stiffness(self) -> float:
+        """Small-strain axial stiffness of the specimen with slip ends, 3 mu A / H
+        [mN/mm]: the first guess of the force-free search off the plate."""
+        g = self.geometry
+        mu_total = sum(float(c.value) for p, c in self.constants.items()
+                       if p.family == "mu")
+        return 3 * mu_total * math.pi * g.radius_mm ** 2 / g.height_mm
 
     def _set_control(self, test: str, value: float, preload: float = 0.0) -> None:
         """Plate position for ``value`` of the controlled quantity (and the preload)."""
@@ -234,6 +250,8 @@ class ForwardModel:
         x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         if self.state is not None:
             self.state.reset()
+        if self.lift_off is not None:
+            self.lift_off.reset()
         self.newton.forget()  # a run never depends on the runs before it
         if names:
             self._sens.start(names)
@@ -250,16 +268,20 @@ class ForwardModel:
                 rows.append({TIME: step.time_s, "cycle": step.cycle, "branch": step.branch,
                              "control": step.value,
                              **channel_values(protocol.test, fz, torque, R)})
+                if self.lift_off is not None:
+                    rows[-1]["in_contact"] = not self.lift_off.trial_off
                 # the channels are linear in (force, torque)
                 sens_rows.append({p: channel_values(protocol.test, dfz, dtq, R)
                                   for p, (dfz, dtq) in sens.items()})
                 if writer:
                     writer.write(step.time_s)
+            if self.lift_off is not None:
+                self.lift_off.commit(*((step.time_s, step.value) if step else ()))
             if self.state is not None:
                 self.state.update()
 
         try:
-            log_ = follow(protocol, steps, x=x, newton=self.newton,
+            log_ = follow(protocol, steps, x=x, newton=self.lift_off or self.newton,
                           set_control=lambda q, p: self._set_control(protocol.test, q, p),
                           set_dt=lambda dt: setattr(self.c_dt, "value", dt),
                           on_converged=converged, describe=describe,
@@ -270,7 +292,10 @@ class ForwardModel:
                 writer.close()
         self.iterations, self.cutbacks, self.newton_log = (log_.iterations, log_.cutbacks,
                                                            log_.newton)
-        return Response.from_rows(protocol.test, rows, sens_rows)
+        res = Response.from_rows(protocol.test, rows, sens_rows)
+        if self.lift_off is not None:
+            res.contact_events = list(self.lift_off.events)
+        return res
 
 
 class _FieldWriter:

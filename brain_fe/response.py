@@ -18,6 +18,8 @@ class Response:
 
     ``values[column]``: the reported column at every output point (``OUTPUT_COLUMNS`` of the
     test); ``jacobian[param][column]``: its partial derivative with respect to ``param``.
+    With plates that cannot pull, ``in_contact`` (bool per point) and ``contact_events``
+    (:class:`~brain_fe.contact.ContactEvent`: lift-off, re-contact).
     """
 
     test: str
@@ -27,6 +29,8 @@ class Response:
     control: np.ndarray
     values: dict[str, np.ndarray]
     jacobian: dict[Param, dict[str, np.ndarray]] = field(default_factory=dict)
+    in_contact: np.ndarray | None = None
+    contact_events: list = field(default_factory=list)
 
     @classmethod
     def from_rows(cls, test: str, rows: list[dict], sens: list[dict]) -> Response:
@@ -39,8 +43,9 @@ class Response:
 
         params = list(dict.fromkeys(p for s in sens for p in s))
         jac = {p: {c: np.array([s[p][c] for s in sens]) for c in cols} for p in params}
+        contact = arr("in_contact", bool) if rows and "in_contact" in rows[0] else None
         return cls(test, arr(TIME), arr("cycle", int), arr("branch", object),
-                   arr("control"), {c: arr(c) for c in cols}, jac)
+                   arr("control"), {c: arr(c) for c in cols}, jac, contact)
 
     def __len__(self) -> int:
         return len(self.time_s)
@@ -59,6 +64,8 @@ class Response:
                            CONTROL[self.test]: self.control})
         for c, v in self.values.items():
             df[c] = v
+        if self.in_contact is not None:
+            df["in_contact"] = self.in_contact.astype(int)
         for p, cols in self.jacobian.items():
             for c, v in cols.items():
                 df[f"d_{c}/d_{p}"] = v

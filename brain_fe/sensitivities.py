@@ -4,11 +4,14 @@
   K z = -dR/dtheta on the free dofs (the Dirichlet values do not depend on the parameters),
   with the Jacobian factorised at that state; the reaction w . R(u(theta), theta) changes by
   w . (dR/dtheta + K z).  dR/dtheta comes from ``ufl.diff`` of the energy.
-* :class:`PathSensitivities` (history-dependent models, glue springs): z = du/dtheta and the
-  history sensitivities ds are carried along the path.  With D the derivative along the
-  direction (theta + e, state + ds, u + z): K z = -(dR/dtheta + dR/dstate ds), the reaction
-  changes by D reaction, and ds <- D G.  The partial derivatives are central differences
-  of the compiled residual and history update; the tangent solve is exact.
+* :class:`PathSensitivities` (history-dependent models, glue springs, lift-off): z =
+  du/dtheta and the history sensitivities ds are carried along the path.  With D the
+  derivative along the direction (theta + e, state + ds, u + z): K z = -(dR/dtheta +
+  dR/dstate ds), the reaction changes by D reaction, and ds <- D G.  The partial
+  derivatives are central differences of the compiled residual and history update; the
+  tangent solve is exact.  With the plate lifted off (:mod:`brain_fe.contact`) the top
+  face's position w(theta) keeps the axial force zero: z gains dw/dtheta times the
+  response to a unit shift of the face.
 """
 
 from __future__ import annotations
@@ -162,8 +165,11 @@ class PathSensitivities:
         # state update are shared by every direction): 2 assemblies and 1 state update per
         # direction instead of 4 and 2; truncation error ~ the relative step, 1e-6
         r0 = m.newton.assemble_residual(with_bcs=False).copy()
-        f0 = np.array(m.ends.reactions(r0, m.comm)) if record else None
+        off = m.lift_off is not None and m.lift_off.trial_off
+        f0 = np.array(m.ends.reactions(r0, m.comm)) if record or off else None
         g0 = state.evaluate() if state is not None else None
+        if off:  # the top face moves with the parameters so that the force stays zero
+            zw, dfz_dw = self._unit_top_shift(x, u0, r0, f0)
         for p, d in self.requests:
             eps = self._step(d)
             # right-hand side: -(explicit + history) derivative of the residual at fixed u
@@ -176,6 +182,11 @@ class PathSensitivities:
             z = self._z[p]
             m.newton.ksp.solve(rhs, z)
             _ghost_forward(z)
+            if off:  # add the shift of the top face that keeps the axial force zero
+                perturb(p, eps, True)
+                dfz = (m.reactions()[0] - f0[0]) / eps
+                z.axpy(-dfz / dfz_dw, zw)
+                _ghost_forward(z)
             if record or state is not None:
                 perturb(p, eps, True)
                 if record:
@@ -186,3 +197,30 @@ class PathSensitivities:
             perturb(p, 0.0, True)
         self._ds.update(new_ds)
         return out
+
+    def _unit_top_shift(self, x, u0, r0, f0) -> tuple:
+        """Off the plate: the response zw of u to a unit axial shift of the top face at
+        fixed parameters and history (K zw = 0 on the free dofs, zw = 1 on the top face's
+        axial dofs), and d(axial force)/d(shift).  K zw's free rows come from a one-sided
+        difference of the residual along the shift."""
+        m = self.model
+        e = m.ends.w_axial  # 1 on the top face's axial dofs
+        h = 1e-7 * m.geometry.height_mm
+        x.axpy(h, e)
+        _ghost_forward(x)
+        rhs = m.newton.assemble_residual(with_bcs=False).copy()
+        u0.copy(x)
+        _ghost_forward(x)
+        rhs.axpy(-1.0, r0)
+        rhs.scale(-1.0 / h)
+        _compat.set_bc(rhs, m.bcs, x, 0.0)
+        rhs.axpy(1.0, e)
+        zw = x.duplicate()
+        m.newton.ksp.solve(rhs, zw)
+        _ghost_forward(zw)
+        x.axpy(h, zw)
+        _ghost_forward(x)
+        dfz_dw = (m.reactions()[0] - f0[0]) / h
+        u0.copy(x)
+        _ghost_forward(x)
+        return zw, dfz_dw

@@ -40,8 +40,9 @@ def _diagnose_one(name, rec, specs, target: Path, *, refinement, effects, nu0, n
     obs = observations(rec[rec.specimen == name])
     obs.attrs["radius_mm"] = float(row.radius_mm)
     R, H = float(row.radius_mm), float(row.height_mm)
-    sim = FESimulator(obs, R, H, refinement=refinement, nu0=nu0)
-    fine = FESimulator(obs, R, H, refinement=refinement + 1, nu0=nu0)
+    ends = str(row.get("ends", "glued"))
+    sim = FESimulator(obs, R, H, refinement=refinement, nu0=nu0, ends=ends)
+    fine = FESimulator(obs, R, H, refinement=refinement + 1, nu0=nu0, ends=ends)
     with as_progress(progress, None, f"diagnose {name}", "fit", comm) as bar:
         d = diagnose(sim, obs, fine_sim=fine, effects=effects, comm=comm, noise=noise,
                      progress=lambda what: bar.update(1, what))
@@ -76,6 +77,9 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
     config = {"engine": ENGINE_VERSION,
               "refinement": refinement, "effects": sorted(effects) if effects else None,
               "nu0": nu0, "noise": noise, "recordings": str(Path(recordings).resolve())}
+    if "ends" in specs:  # the end conditions are part of the model: recorded when given
+        config["ends"] = {n: e for n, e in zip(specs.specimen, specs.ends, strict=True)
+                          if e != "glued" and n in names}
     error = None
     if comm.rank == 0:
         error = _claim(out, config)

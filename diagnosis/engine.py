@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from brain_fe.ends import resolve
 from brain_fe.parallel import SharedCounter, dynamic_items
 from simulators.coordinates import NU0
 
@@ -261,7 +262,8 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     for a in ambiguous:
         log.warning("%s and %s cannot be told apart with these tests (dBIC %.1f); %s",
                     *a["effects"], a["delta_bic"], a["separating_test"])
-    notes += contact_notes(obs, base, current, sd)
+    notes += contact_notes(obs, base, current, sd,
+                           lift_off=resolve(getattr(sim, "ends", "glued"))[1])
     timings["noise_locate_decide"] = round(time.perf_counter() - t_end, 2)
     return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
                      ambiguous, disc, time.perf_counter() - t0, obs, notes, tried, doubt,
@@ -306,17 +308,20 @@ def _rms(obs, f: Fit, sd: np.ndarray, rows=slice(None)) -> float:
     return float(np.sqrt(np.mean((_residual(obs, f)[rows] / sd[rows]) ** 2)))
 
 
-def contact_notes(obs, base: Fit, final: Fit, sd: np.ndarray) -> list[str]:
+def contact_notes(obs, base: Fit, final: Fit, sd: np.ndarray,
+                  lift_off: bool = False) -> list[str]:
     """What the points recorded off the specimen (``in_contact`` = 0: after a lift-off,
-    before a re-contact) do to the misfit: the model keeps both ends glued and cannot
-    follow them."""
+    before a re-contact) do to the misfit.  ``lift_off``: the model lets the top plate lift
+    off (unglued ends); otherwise it keeps the ends glued and cannot follow them."""
     if "in_contact" not in obs or obs["in_contact"].all():
         return []
     off = obs["in_contact"].to_numpy() == 0
+    model = ("the model lets the top plate lift off where it would pull (unglued ends)"
+             if lift_off else "the model keeps both ends glued and cannot follow them "
+             "(no lift-off end condition; ends = unglued in the specimens table has one)")
     return [f"{int(off.sum())} of {off.size} points were recorded with the plate off the "
             "specimen (lift-off on unloading, before the re-contact on reloading: "
-            "in_contact = 0); the model keeps both ends glued and cannot follow them (no "
-            "lift-off end condition): RMS misfit / noise on them "
+            f"in_contact = 0); {model}: RMS misfit / noise on them "
             f"{_rms(obs, base, sd, off):.2f} (base) -> {_rms(obs, final, sd, off):.2f}, on "
             f"the points in contact {_rms(obs, base, sd, ~off):.2f} -> "
             f"{_rms(obs, final, sd, ~off):.2f}"]

@@ -39,7 +39,10 @@ point (the reading, interpolated between its refreshes; stretch = gap_mm / H) is
 rows) marks the points recorded with the plate on the specimen: after a lift-off on
 unloading (the force back at zero within ``CONTACT_BAND`` noise SDs to the ramp's end) and
 before the re-contact on reloading it is 0; the events are listed in the specimens table
-(``contact_events``) and import.md.  Noise (``noise.json``): see :func:`_noise`.
+(``contact_events``) and import.md.  The specimens of raw exports have ``ends = unglued``
+(sandblasted plates, no glue: the model lets the top plate lift off instead of pulling);
+processed curves, which include tension, ``glued``.  Noise (``noise.json``): see
+:func:`_noise`.
 
 Every problem raises :class:`RheometerError` (a ``ValueError``) with one line naming the
 file, the sheet and the row (spreadsheet rows as the spreadsheet shows them, from 1) or the
@@ -170,7 +173,8 @@ def _axial(table: Table, sid: str, radius: float, points: int, detect: bool) -> 
     rows["in_contact"] = (~off).astype(np.int64)
     events = _contact_events(off, cyc, runs, rows)
     holds = _holds(tt, branch, keep)
-    spec = {"height_mm": h, "contact_gap_mm": h, "contact_uncertainty_mm": unc,
+    spec = {"height_mm": h, "ends": "unglued", "contact_gap_mm": h,
+            "contact_uncertainty_mm": unc,
             "preload_mN": preload, "height_source": "contact" if detect else "first gap",
             "contact_events": "; ".join(events) or "none"}
     if detect:
@@ -256,7 +260,8 @@ def _torsion(hold: Table, axial: Table, sid: str, radius: float, points: int) ->
         rows["normal_force_mN"] = res["normal_force_mN"].to_numpy()
     noise = _noise(t[keep], torque[keep], bins, np.zeros(bins.size, int),
                    rows[TORQUE].to_numpy(), runs, res["n"].to_numpy())
-    spec = {"height_mm": h, "contact_gap_mm": h0, "contact_uncertainty_mm": math.nan,
+    spec = {"height_mm": h, "ends": "unglued", "contact_gap_mm": h0,
+            "contact_uncertainty_mm": math.nan,
             "preload_mN": preload, "height_source": "gap after the preload"}
     info = (f"torsion, amplitude {amp:.2f}, loading only, preload {preload:.0f} mN to gap "
             f"{h:.3f} mm (first contact {h0:.3f} mm), shear stress at start "
@@ -293,7 +298,8 @@ def _processed(curve: Table, sid: str, radius: float) -> tuple:
     sd = seg.second_diff_sd(values, np.zeros(values.size, int))
     noise = {"sd": sd, "m": 1, "moving": math.nan, "rest": math.nan, "white": math.nan,
              "check": sd}
-    spec = {"height_mm": math.nan, "contact_gap_mm": math.nan,
+    # a tension curve needs a grip: processed curves are taken as glued
+    spec = {"height_mm": math.nan, "ends": "glued", "contact_gap_mm": math.nan,
             "contact_uncertainty_mm": math.nan, "preload_mN": math.nan, "height_source": ""}
     kind = "tension" if test == COMPRESSION_TENSION else "shear"
     info = (f"{test} ({kind}, processed curve), amplitude {amp:.2f}, loading only, "

@@ -7,6 +7,9 @@
     brain      str    id of the donor brain (integers are accepted and turned into text)
     radius_mm  float  undeformed radius R [mm], > 0
     height_mm  float  undeformed height H [mm], > 0
+    ends       str    optional: ``glued`` (default), ``slip`` (lubricated) or ``unglued``
+                      (rough plates without glue: held tangentially, the top plate lifts
+                      off instead of pulling; :mod:`brain_fe.contact`)
     ...               any further columns (``notes``, composition, ...) are kept
 
 **Recordings table** (one row per sample point)::
@@ -45,6 +48,7 @@ from brain_fe.vocabulary import (
 )
 
 SPECIMEN_COLUMNS = ("specimen", "region", "brain", "radius_mm", "height_mm")
+SPECIMEN_ENDS = ("glued", "slip", "unglued")  # the optional ``ends`` column
 RECORDING_COLUMNS = ("specimen", "test", "amplitude", "cycle", "branch", TIME, STRETCH,
                      SHEAR, NOMINAL_STRESS, TORQUE, AXIAL_FORCE)
 RECORDED_BRANCHES = (LOADING, UNLOADING)

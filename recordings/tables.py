@@ -100,6 +100,7 @@ from .schema import (
     RECORDED_BRANCHES,
     RECORDING_COLUMNS,
     SPECIMEN_COLUMNS,
+    SPECIMEN_ENDS,
 )
 
 log = logging.getLogger(__name__)
@@ -110,7 +111,8 @@ def read_specimens(path) -> pd.DataFrame:
     """Read and validate a specimens table (CSV or Parquet, see the module docstring).
 
     Returns a DataFrame in file order with columns ``specimen``, ``region``, ``brain`` (text),
-    ``radius_mm``, ``height_mm`` (float, mm, > 0), then any extra columns.  Raises
+    ``radius_mm``, ``height_mm`` (float, mm, > 0), then any extra columns (``ends``, when
+    given, one of ``SPECIMEN_ENDS``).  Raises
     :class:`RecordingsError` with a one-line message on any problem.
     """
     raw = read_raw(path)
@@ -121,6 +123,8 @@ def read_specimens(path) -> pd.DataFrame:
     conv["brain"] = id_column(raw, "brain")
     conv["radius_mm"] = float_column(raw, "radius_mm", True, positive=True)
     conv["height_mm"] = float_column(raw, "height_mm", True, positive=True)
+    ends = (choice_column(raw, "ends", SPECIMEN_ENDS, "end condition")
+            if "ends" in raw.df else None)
     raw.raise_first()
     for col, (lo, hi) in (("radius_mm", RADIUS_RANGE_MM), ("height_mm", HEIGHT_RANGE_MM)):
         v = conv[col]
@@ -137,6 +141,8 @@ def read_specimens(path) -> pd.DataFrame:
                   f"(first on {raw.row(first[ids.iloc[pos]])})")
     raw.raise_first()
     df = output_table(raw, conv, SPECIMEN_COLUMNS)
+    if ends is not None:
+        df["ends"] = ends.to_numpy(object)
     log.debug("%s: %d specimens in %d regions", raw.path, len(df), df["region"].nunique())
     return df
 

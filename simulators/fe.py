@@ -31,6 +31,7 @@ from mpi4py import MPI
 from scipy.interpolate import CubicSpline
 
 from brain_fe import geometry as geo
+from brain_fe.ends import resolve
 from brain_fe.materials import MaterialModel
 from brain_fe.model import ForwardModel
 from brain_fe.parameters import Param
@@ -46,6 +47,9 @@ log = logging.getLogger(__name__)
 
 class FESimulator:
     """Axisymmetric FE model of one specimen (radius, height [mm]) predicting ``obs``.
+
+    ``ends``: ``glued``, ``slip`` or ``unglued`` (the top plate lifts off instead of
+    pulling); the imperfect-gluing effect replaces the tangential condition by springs.
 
     ``geometry`` and ``models`` (a dict of compiled models by physics) may be shared by
     several simulators of the same specimen, which then compile their forms once."""
@@ -81,12 +85,14 @@ class FESimulator:
 
     def model(self, physics: co.Physics) -> ForwardModel:
         """The compiled model with ``physics`` (compiled once per kind, then reused)."""
-        ends = "springs" if physics.springs else self.ends
-        key = (physics, ends)
+        kind, lift_off = resolve(self.ends)
+        ends = "springs" if physics.springs else kind
+        key = (physics, ends, lift_off)
         if key not in self._models:
             material = MaterialModel.build(physics.n_terms, maxwell=physics.maxwell,
                                            softening=physics.softening, laws=physics.laws)
-            self._models[key] = ForwardModel(self.geometry, material, ends=ends)
+            self._models[key] = ForwardModel(self.geometry, material, ends=ends,
+                                             lift_off=lift_off)
         return self._models[key]
 
     def predict(self, values: Mapping[Param, float],

@@ -63,3 +63,51 @@ def homogeneous_uniaxial_fibres(lam, k1, k2, mu=1.0, alpha=-20.0, kappa=100.0):
 
     s = brentq(lambda s: dW(1, (lam, s, s)), 0.5, 2.0, xtol=1e-15)
     return dW(0, (lam, s, s))
+
+
+def sls_unilateral(times, plate_strain, modulus, beta, tau):
+    """Linear standard solid (E(t) = E (1 + beta e^(-t/tau))) pressed by a plate that
+    cannot pull: nominal stress [kPa] at ``times`` and whether the plate touches.
+
+    ``plate_strain(t)``: the plate's strain (< 0 pressing), linear between the entries of
+    ``times`` that are its turning points.  In contact sigma = E e_p + q with
+    q' = E beta e_p' - q / tau; off the plate sigma = 0, the specimen's strain is
+    e_s = -q / E and q' = -q / (tau (1 + beta)).  Lift-off where sigma reaches 0 from below,
+    re-contact where the plate comes back down to e_s; both located as events of
+    ``solve_ivp`` (rtol 1e-11), each linear piece of the plate's path integrated apart."""
+    from scipy.integrate import solve_ivp
+
+    times = np.asarray(times, float)
+
+    def slope(t, h=1e-7):
+        return (plate_strain(t + h) - plate_strain(t - h)) / (2 * h)
+
+    def pulls(t, q):  # sigma in contact
+        return modulus * plate_strain(t) + q[0]
+
+    def touches(t, q):  # plate above the specimen's top: e_p - e_s
+        return plate_strain(t) + q[0] / modulus
+
+    pulls.terminal, pulls.direction = True, 1
+    touches.terminal, touches.direction = True, -1
+    q_at, on_at = {0: 0.0}, {0: True}
+    t, q, in_contact = 0.0, 0.0, True
+    pieces = list(times[1:])
+    while pieces:
+        t_stop = pieces[0]
+        mid_slope = slope(0.5 * (t + t_stop))
+        rhs = ((lambda _t, y, s=mid_slope: [modulus * beta * s - y[0] / tau]) if in_contact
+               else (lambda _t, y: [-y[0] / (tau * (1 + beta))]))
+        sol = solve_ivp(rhs, (t, t_stop), [q], events=pulls if in_contact else touches,
+                        rtol=1e-11, atol=1e-16, dense_output=True)
+        t, q = float(sol.t[-1]), float(sol.y[0, -1])
+        if sol.status == 1:  # an event inside the piece: the contact state changes
+            in_contact = not in_contact
+            continue
+        k = int(np.searchsorted(times, t_stop))
+        q_at[k], on_at[k] = q, in_contact
+        pieces.pop(0)
+    q = np.array([q_at[k] for k in range(len(times))])
+    on = np.array([on_at[k] for k in range(len(times))])
+    sigma = np.where(on, modulus * np.array([plate_strain(t) for t in times]) + q, 0.0)
+    return sigma, on

@@ -186,6 +186,8 @@ REC_CASES = [
      ["line 3, column specimen", "duplicate specimen id"]),
     ("spec-missing-column", files(spec_edit=lambda s: s.drop(columns=["region"])),
      ["column region", "missing required column"]),
+    ("spec-ends-unknown", files(spec_edit=lambda s: s.assign(ends="sticky")),
+     ["line 2, column ends", "unknown end condition 'sticky'"]),
 ]
 
 IDENTIFY = ["identify", "--recordings", "{rec}", "--specimens", "{spec}", "--surrogates",

@@ -169,6 +169,7 @@ def test_import_writes_valid_tables(tmp_path):
     rec = read_recordings(out / "recordings.csv", spec)
     assert spec.specimen.tolist() == ["mat/dc-1", "mat/dc-2"]
     assert set(spec.region) == {"mat"} and set(spec.brain) == {"2s"}
+    assert set(spec.ends) == {"unglued"}  # sandblasted plates: the plate cannot pull
     assert len(rec) == 160 and "gap_mm" in rec
     noise = json.loads((out / "noise.json").read_text())
     assert set(noise) == {"mat/dc-1", "mat/dc-2"} and set(noise["mat/dc-1"]) == {"stress"}

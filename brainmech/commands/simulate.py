@@ -37,9 +37,10 @@ def add(sub) -> None:
                    "kappa/4 (J^2-1-2 ln J)")
     p.add_argument("--radius-mm", type=a.positive, default=4.0)
     p.add_argument("--height-mm", type=a.positive, default=5.0)
-    p.add_argument("--ends", choices=["glued", "slip", "springs"], default="glued",
-                   help="glued plates (default), frictionless (slip) or a compliant glue "
-                   "layer (springs: give --k-r and --k-theta)")
+    p.add_argument("--ends", choices=["glued", "slip", "springs", "unglued"], default="glued",
+                   help="glued plates (default), frictionless (slip), a compliant glue "
+                   "layer (springs: give --k-r and --k-theta) or rough plates without glue "
+                   "that lift off instead of pulling (unglued)")
     p.add_argument("--refinement", type=a.count(1), default=None,
                    help="mesh refinement level k (default: the level with <= 1 %% force "
                    "error, see BENCHMARKS.md)")
