@@ -31,7 +31,7 @@ from .solver import NewtonReport
 log = logging.getLogger(__name__)
 
 FORCE_RTOL = 1e-7  # |axial force| off the plate, relative to the run's peak force so far
-MAX_SECANT = 40
+MAX_SECANT = 20
 
 
 @dataclass

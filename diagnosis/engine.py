@@ -262,6 +262,11 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     for a in ambiguous:
         log.warning("%s and %s cannot be told apart with these tests (dBIC %.1f); %s",
                     *a["effects"], a["delta_bic"], a["separating_test"])
+    if rounds and rounds[0].unscored:
+        notes.append(f"{', '.join(rounds[0].unscored)} could not be scored: the FE model "
+                     "could not follow the recorded path at any of its design points, so "
+                     "the verdict does not test "
+                     + ("it" if len(rounds[0].unscored) == 1 else "them"))
     notes += contact_notes(obs, base, current, sd,
                            lift_off=resolve(getattr(sim, "ends", "glued"))[1])
     timings["noise_locate_decide"] = round(time.perf_counter() - t_end, 2)

@@ -86,7 +86,8 @@ def _write(d, out: Path, title: str) -> dict:
               "Each round adds the significant effect of lowest BIC to the model (LRT p < "
               "alpha / candidates and a BIC gain beyond the margin, under the rig's noise "
               "model); 'screened out': its score could not reach significance; 'could not be "
-              "solved': its fit failed (the FE model could not follow it).", ""]
+              "solved': its fit failed (the FE model could not follow it); 'not scored': "
+              "the FE model could not follow it at any design point.", ""]
     for rnd in res["rounds"]:
         lines += [f"From **{rnd['from']}**: added {rnd['added'] or 'nothing'}"
                   + (f", dropped {', '.join(rnd['dropped'])}" if rnd["dropped"] else ""), "",
@@ -96,7 +97,8 @@ def _write(d, out: Path, title: str) -> dict:
             pars = ", ".join(f"{k} = {v:.4g}" for k, v in e["parameters"].items())
             sig = "screened out" if e.get("screened_out") else (
                 "could not be solved" if e.get("fit_failed") else (
-                    "yes" if e["significant"] else "no"))
+                    "not scored" if e.get("score_failed") else (
+                        "yes" if e["significant"] else "no")))
             lines.append(f"| {e['effect']} | {e['score']:.1f} | {e['delta_bic']:.1f} | "
                          f"{e['p_value']:.2g} | {sig} | {pars} |")
         lines.append("")

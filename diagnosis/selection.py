@@ -76,6 +76,7 @@ class Round:
     dropped: list = field(default_factory=list)
     noise: object = None
     failed: list = field(default_factory=list)  # fitted but the model could not be solved
+    unscored: list = field(default_factory=list)  # no design point could be solved
     seconds: dict = field(default_factory=dict)  # wall time of the round's stages
 
     def timings(self) -> dict:
@@ -158,7 +159,12 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
     log.info("round from %s: %d design points scored in %.1f s, %d candidates fitted in "
              "%.1f s", "+".join(current_effects) or "base", len(points), seconds["scores"],
              len(to_fit), seconds["fits"])
-    return Round(list(current_effects), best, fits, [], failed=failed, seconds=seconds)
+    unscored = [e for e in candidates if e not in best]
+    if unscored:
+        log.warning("no design point of %s could be solved: not scored, not fitted",
+                    ", ".join(unscored))
+    return Round(list(current_effects), best, fits, [], failed=failed, seconds=seconds,
+                 unscored=unscored)
 
 
 def compare(ctx: Context, rnd: Round, current: Fit, m: int, noise) -> list:
@@ -186,7 +192,13 @@ def compare(ctx: Context, rnd: Round, current: Fit, m: int, noise) -> list:
                           **({"fit_failed": True} if e in rnd.failed else
                              {"screened_out": True}),
                           "parameters": {}, "stderr": {}})
-    table.sort(key=lambda r: (math.isnan(r["delta_bic"]), r["delta_bic"], -r["score"]))
+    for e in rnd.unscored:  # a candidate the model could not follow is said, not hidden
+        table.append({"effect": e, "chi2": float("nan"), "lrt": float("nan"),
+                      "p_value": float("nan"), "delta_bic": float("nan"),
+                      "significant": False, "score": float("nan"), "score_failed": True,
+                      "parameters": {}, "stderr": {}})
+    table.sort(key=lambda r: (math.isnan(r["delta_bic"]), r["delta_bic"],
+                              -np.nan_to_num(r["score"], nan=-np.inf)))
     return table
 
 

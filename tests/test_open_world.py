@@ -144,3 +144,18 @@ def test_a_near_tie_is_judged_on_completed_fits(monkeypatch):
     far = [sig[0], {"effect": "ogden_2term", "delta_bic": -30.0}]
     assert eng._complete_contenders(ctx, rnd, [], far) == []  # beyond the margin
     assert completed == []
+
+
+def test_a_candidate_that_cannot_be_scored_is_listed():
+    """A candidate whose model could not be solved at any design point (the viscoelastic
+    one on real double compressions to 50 %) stays in the round's table as 'not scored'
+    instead of vanishing from it."""
+    from types import SimpleNamespace
+
+    from diagnosis.selection import Round, compare
+
+    ctx = SimpleNamespace(chi2=lambda noise, f: 100.0, obs=[0] * 10, lib={})
+    rnd = Round([], {}, {}, [], unscored=["viscoelastic"])
+    (row,) = compare(ctx, rnd, SimpleNamespace(k=3), 6, None)
+    assert row["effect"] == "viscoelastic" and row["score_failed"]
+    assert not row["significant"] and np.isnan(row["score"])
