@@ -42,6 +42,7 @@ class ContactEvent:
     time_s: float
     control: float  # the plate's control value (stretch) at the point
     gap_mm: float  # plate position above the specimen's top face at the point (0: touching)
+    cycle: int = 1
 
 
 class LiftOff:
@@ -75,7 +76,8 @@ class LiftOff:
         """Whether the state just solved has the plate off the specimen."""
         return self._trial[0]
 
-    def commit(self, time_s: float | None = None, control: float | None = None) -> None:
+    def commit(self, time_s: float | None = None, control: float | None = None,
+               cycle: int = 1) -> None:
         """The last solve converged and is kept: take its contact state (an event at an
         output point when the state changed)."""
         off, w, plate = self._trial
@@ -90,7 +92,7 @@ class LiftOff:
         if off != self.off and time_s is not None:
             kind = "lift-off" if off else "re-contact"
             self.events.append(ContactEvent(kind, float(time_s), float(control),
-                                            float(plate - w)))
+                                            float(plate - w), int(cycle)))
             log.debug("%s at t = %.4g s, control %.5g", kind, time_s, control)
         self.off, self.w = off, w
 

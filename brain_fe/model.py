@@ -276,7 +276,7 @@ class ForwardModel:
                 if writer:
                     writer.write(step.time_s)
             if self.lift_off is not None:
-                self.lift_off.commit(*((step.time_s, step.value) if step else ()))
+                self.lift_off.commit(*((step.time_s, step.value, step.cycle) if step else ()))
             if self.state is not None:
                 self.state.update()
 

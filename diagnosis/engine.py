@@ -267,8 +267,10 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                      "could not follow the recorded path at any of its design points, so "
                      "the verdict does not test "
                      + ("it" if len(rounds[0].unscored) == 1 else "them"))
-    notes += contact_notes(obs, base, current, sd,
-                           lift_off=resolve(getattr(sim, "ends", "glued"))[1])
+    lift_off = resolve(getattr(sim, "ends", "glued"))[1]
+    notes += contact_notes(obs, base, current, sd, lift_off=lift_off)
+    if lift_off and "in_contact" in obs and not obs["in_contact"].all():
+        notes += contact_event_notes(obs, sim, current)
     timings["noise_locate_decide"] = round(time.perf_counter() - t_end, 2)
     return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
                      ambiguous, disc, time.perf_counter() - t0, obs, notes, tried, doubt,
@@ -330,6 +332,40 @@ def contact_notes(obs, base: Fit, final: Fit, sd: np.ndarray,
             f"{_rms(obs, base, sd, off):.2f} (base) -> {_rms(obs, final, sd, off):.2f}, on "
             f"the points in contact {_rms(obs, base, sd, ~off):.2f} -> "
             f"{_rms(obs, final, sd, ~off):.2f}"]
+
+
+def recorded_events(obs) -> dict[str, list[tuple[str, int, float]]]:
+    """Per curve, the (kind, cycle, control) of each change of ``in_contact`` in the
+    recorded order (lift-off at the first point off the specimen, re-contact at the first
+    one back on it)."""
+    out = {}
+    for curve, g in obs.groupby("curve", sort=False):
+        g = g[g.channel == g.channel.iloc[0]]
+        on = g["in_contact"].to_numpy() != 0
+        out[str(curve)] = [("lift-off" if on[i - 1] else "re-contact", int(g.cycle.iloc[i]),
+                            float(g.control.iloc[i]))
+                           for i in range(1, len(on)) if on[i] != on[i - 1]]
+    return out
+
+
+def contact_event_notes(obs, sim, final: Fit) -> list[str]:
+    """Where the final model lets go of the specimen and meets it again, beside where the
+    recordings say (unglued ends); one note per curve with contact events."""
+    def fmt(events):
+        return ", ".join(f"{k} in cycle {c} at {x:.3f}" for k, c, x in events) or "none"
+
+    try:
+        predicted = sim.contact_events(final.values)
+    except (RuntimeError, ValueError) as exc:  # the note is not worth a failed diagnosis
+        log.warning("contact events of the final model: %s", exc)
+        return []
+    notes = []
+    for curve, rec in recorded_events(obs).items():
+        model = [(e.kind, e.cycle, e.control) for e in predicted.get(curve, [])]
+        if rec or model:
+            notes.append(f"{curve}: the final model {fmt(model)}; recorded {fmt(rec)} "
+                         "(stretch)")
+    return notes
 
 
 def _what_remains(obs, current: Fit, stated, alpha, bic_margin):

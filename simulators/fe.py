@@ -123,6 +123,18 @@ class FESimulator:
             y, J = c.allreduce(y), c.allreduce(J)
         return Prediction(y + self.correction, J, wrt)
 
+    def contact_events(self, values: Mapping[Param, float]) -> dict[str, list]:
+        """Per curve, the lift-off and re-contact events (:class:`~brain_fe.contact.
+        ContactEvent`) of the model at ``values`` along the recorded path; {} when the
+        plates can pull."""
+        point = co.model_point({Param.parse(k): v for k, v in values.items()}, self.nu0)
+        fm = self.model(point.physics)
+        if fm.lift_off is None:
+            return {}
+        return {curve: fm.solve(path, point.material, interface=point.interface,
+                                artefacts=point.artefacts).contact_events
+                for curve, path, _ in self.curves}
+
     def _solve_curves(self, fm, point, needed, branches, c, y, J) -> None:
         """Fill ``y`` and ``J`` with the rows of this rank's share of the curves."""
         for i, (_curve, path, rows) in enumerate(self.curves):

@@ -154,3 +154,26 @@ def test_points_off_the_specimen_are_reported_apart():
     assert note.startswith("2 of 6 points") and "on them 4.00 (base) -> 3.00" in note
     assert "in contact 1.00 -> 0.50" in note
     assert contact_notes(obs.assign(in_contact=1), base, final, np.ones(6)) == []
+
+
+def test_the_model_s_lift_off_is_set_beside_the_recorded_one():
+    """Unglued ends: the final model's contact events (here of a stand-in simulator) are
+    reported beside the changes of in_contact in the recordings, per curve and cycle."""
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from brain_fe.contact import ContactEvent
+    from diagnosis.engine import contact_event_notes, recorded_events
+
+    obs = pd.DataFrame({"curve": "ct", "channel": "stress", "cycle": [1, 1, 1, 2, 2, 2],
+                        "control": [0.6, 0.7, 0.8, 0.9, 0.75, 0.6],
+                        "in_contact": [1, 0, 0, 0, 1, 1]})
+    assert recorded_events(obs) == {"ct": [("lift-off", 1, 0.7), ("re-contact", 2, 0.75)]}
+    events = [ContactEvent("lift-off", 1.0, 0.68, 0.01, 1),
+              ContactEvent("re-contact", 2.0, 0.78, 0.0, 2)]
+    sim = SimpleNamespace(contact_events=lambda values: {"ct": events})
+    (note,) = contact_event_notes(obs, sim, SimpleNamespace(values={}))
+    assert note == ("ct: the final model lift-off in cycle 1 at 0.680, re-contact in cycle 2 "
+                    "at 0.780; recorded lift-off in cycle 1 at 0.700, re-contact in cycle 2 "
+                    "at 0.750 (stretch)")
