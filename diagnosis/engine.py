@@ -216,34 +216,38 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         rnd = run_round(ctx, current, chosen, cands, J, progress,
                         first=rounds[0] if rounds else None)
         rounds.append(rnd)
-        timings["rounds"].append(rnd.timings())
-        if not rnd.fits:
-            rnd.noise = _noise_of(obs, current, noise)
-            rnd.table = compare(ctx, rnd, current, len(cands), rnd.noise)
-            break
-        sig = _judge(ctx, rnd, current, len(cands), noise)
-        if _complete_contenders(ctx, rnd, chosen, sig):  # the order may change
+        timings["rounds"].append(entry := rnd.timings())
+        try:
+            if not rnd.fits:
+                rnd.noise = _noise_of(obs, current, noise)
+                rnd.table = compare(ctx, rnd, current, len(cands), rnd.noise)
+                break
             sig = _judge(ctx, rnd, current, len(cands), noise)
-        if not sig:
-            break
-        added = sig[0]["effect"]
-        ambiguous += [{"effects": [added, r["effect"]], "delta_bic": r["delta_bic"]
-                       - sig[0]["delta_bic"], "separating_test": separating_test(
-                           added, r["effect"])} for r in sig[1:]
-                      if r["delta_bic"] - sig[0]["delta_bic"] < bic_margin]
-        new = _complete(ctx, rnd.fits[added], [*chosen, added])
-        rnd.added = added
-        chosen = [*chosen, added]
-        current, chosen, dropped = _retest(ctx, new, chosen, rnd.noise)
-        rnd.dropped = dropped
-        final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
-        if not rem["systematic"]:  # explained: no further effect can earn a place
-            break
-        J = _jacobian(sim, comm, current, _all_names(lib, chosen))
-        timings["rounds"][-1]["whole_round"] = round(time.perf_counter() - t_round, 2)
+            completed = _complete_contenders(ctx, rnd, chosen, sig)
+            if completed:  # the order may change
+                entry["near_tie_completion"] = {
+                    e: {"s": round(rnd.fits[e].seconds, 2), "evaluations": rnd.fits[e].nfev}
+                    for e in completed}
+                sig = _judge(ctx, rnd, current, len(cands), noise)
+            if not sig:
+                break
+            added = sig[0]["effect"]
+            ambiguous += [{"effects": [added, r["effect"]], "delta_bic": r["delta_bic"]
+                           - sig[0]["delta_bic"], "separating_test": separating_test(
+                               added, r["effect"])} for r in sig[1:]
+                          if r["delta_bic"] - sig[0]["delta_bic"] < bic_margin]
+            new = _complete(ctx, rnd.fits[added], [*chosen, added])
+            rnd.added = added
+            chosen = [*chosen, added]
+            current, chosen, dropped = _retest(ctx, new, chosen, rnd.noise)
+            rnd.dropped = dropped
+            final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
+            if not rem["systematic"]:  # explained: no further effect can earn a place
+                break
+            J = _jacobian(sim, comm, current, _all_names(lib, chosen))
+        finally:  # every round, the one that stops too
+            entry["whole_round"] = round(time.perf_counter() - t_round, 2)
     t_end = time.perf_counter()
-    if rounds and "whole_round" not in timings["rounds"][-1]:  # the round that stopped
-        timings["rounds"][-1]["whole_round"] = round(t_end - t_round, 2)
     if final_noise is None or final_noise.fitted_to is not current:
         final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
     located = loc.locate(obs, final_noise.whiten(_residual(obs, base)), 1.0,

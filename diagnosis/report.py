@@ -133,6 +133,9 @@ def _where_the_time_went(res: dict) -> str:
     for i, r in enumerate(t["rounds"], 1):
         fits = ", ".join(f"{e} {v['s']:.0f} s/{v['evaluations']} evaluations"
                          for e, v in r["fit_per_candidate"].items())
+        tie = ", ".join(f"{e} {v['s']:.0f} s/{v['evaluations']} evaluations"
+                        for e, v in r.get("near_tie_completion", {}).items())
         parts.append(f"round {i}: scores {r['scores']:.0f} s, fits {r['fits']:.0f} s"
-                     + (f" ({fits})" if fits else ""))
+                     + (f" ({fits})" if fits else "")
+                     + (f", near tie completed: {tie}" if tie else ""))
     return " (" + "; ".join(parts) + ")"

@@ -47,6 +47,10 @@ def test_blind_three_cases(tmp_path):
     for v in labels.values():  # concealed: the base misfit is a few noise levels
         if v["effect"] != "none":
             assert 1.5 < v["base_misfit_over_noise"] < 6
+    for f in (tmp_path / "cases").glob("*_result.json"):  # where the time went, per round
+        rounds = json.loads(f.read_text())["timings_s"]["rounds"]
+        assert rounds and all(r["whole_round"] >= r["scores"] + r["fits"] - 0.05
+                              for r in rounds)
 
 
 def test_fe_simulator_jacobian(tmp_path):
