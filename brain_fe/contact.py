@@ -67,7 +67,7 @@ class LiftOff:
         self.slope = None  # last d(tension)/d(top displacement) in contact [mN/mm]
         self.events: list[ContactEvent] = []
         self._trial = (False, 0.0, 0.0)  # (off, w, plate) of the last solve
-        self._last = None  # (w, force, off) of the last committed state
+        self._force_committed = None  # axial force of the last committed state [mN]
         self._drift = 0.0  # change of w over the last committed step off the plate
 
     # ------------------------------------------------------------------ state
@@ -82,12 +82,12 @@ class LiftOff:
         output point when the state changed)."""
         off, w, plate = self._trial
         force = self._force()
-        last = self._last
-        if not off and last is not None and not last[2] and w != last[0]:
-            slope = self.ends.tension(force - last[1]) / (w - last[0])
+        before = self._force_committed is not None  # (self.off, self.w): the last state
+        if before and not off and not self.off and w != self.w:
+            slope = self.ends.tension(force - self._force_committed) / (w - self.w)
             self.slope = slope if slope > 0 else self.slope
-        self._drift = w - last[0] if off and last is not None and last[2] else 0.0
-        self._last = (w, force, off)
+        self._drift = w - self.w if before and off and self.off else 0.0
+        self._force_committed = force
         self.peak = max(self.peak, abs(force))
         if off != self.off and time_s is not None:
             kind = "lift-off" if off else "re-contact"
@@ -118,7 +118,7 @@ class LiftOff:
         if self._tension() <= self._tolerance():
             self._trial = (False, plate, plate)
             return rep
-        rep, w = self._free(plate, total, pulling=True)
+        rep, w = self._free(plate, total, rep)
         if rep.converged:
             self._trial = (True, min(w, plate), plate)
         return rep
@@ -137,12 +137,11 @@ class LiftOff:
         rep.iterations, rep.residuals = total.iterations, total.residuals
         return rep
 
-    def _free(self, w0: float, total: NewtonReport, pulling: bool = False):
+    def _free(self, w0: float, total: NewtonReport, rep: NewtonReport | None = None):
         """The top displacement where the axial force vanishes, by secant steps kept
         inside the bracket found so far (bisection when a step leaves it), from ``w0``
-        (whose solve is already current when ``pulling``)."""
-        rep = self._at(w0, total) if not pulling else NewtonReport(True, total.iterations,
-                                                                 total.residuals)
+        (solved here unless ``rep`` is the report of its current solve)."""
+        rep = rep or self._at(w0, total)
         if not rep.converged:
             return rep, w0
         lo = hi = None  # top displacements with compressive / tensile force

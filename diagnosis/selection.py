@@ -184,19 +184,15 @@ def compare(ctx: Context, rnd: Round, current: Fit, m: int, noise) -> list:
                       "parameters": {str(q): float(f.values[q]) for q in ctx.lib[e].names},
                       "stderr": {str(q): float(f.stderr.get(q, float("nan")))
                                  for q in ctx.lib[e].names}})
-    for e, s in rnd.scores.items():
-        if e not in rnd.fits:
-            table.append({"effect": e, "chi2": float("nan"), "lrt": float("nan"),
-                          "p_value": float("nan"), "delta_bic": float("nan"),
-                          "significant": False, "score": s.lm,
-                          **({"fit_failed": True} if e in rnd.failed else
-                             {"screened_out": True}),
-                          "parameters": {}, "stderr": {}})
-    for e in rnd.unscored:  # a candidate the model could not follow is said, not hidden
-        table.append({"effect": e, "chi2": float("nan"), "lrt": float("nan"),
-                      "p_value": float("nan"), "delta_bic": float("nan"),
-                      "significant": False, "score": float("nan"), "score_failed": True,
-                      "parameters": {}, "stderr": {}})
+    def unfitted(e, score, why):  # a candidate in the table without a fit, and why
+        return {"effect": e, "chi2": float("nan"), "lrt": float("nan"),
+                "p_value": float("nan"), "delta_bic": float("nan"), "significant": False,
+                "score": score, why: True, "parameters": {}, "stderr": {}}
+
+    table += [unfitted(e, s.lm, "fit_failed" if e in rnd.failed else "screened_out")
+              for e, s in rnd.scores.items() if e not in rnd.fits]
+    # a candidate the model could not follow is said, not hidden
+    table += [unfitted(e, float("nan"), "score_failed") for e in rnd.unscored]
     table.sort(key=lambda r: (math.isnan(r["delta_bic"]), r["delta_bic"],
                               -np.nan_to_num(r["score"], nan=-np.inf)))
     return table
