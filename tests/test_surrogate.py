@@ -23,15 +23,17 @@ def test_split_never_shares_a_parameter_set():
 
 def test_fe_stress_scales_with_mu_at_fixed_nu0(axi_slip):
     """The exact scaling behind scale_by_mu: with nu0 fixed (kappa ~ mu) every stress of the
-    one-term model is proportional to mu (here to 1e-9)."""
+    one-term model is proportional to mu (here to 1e-9 of the peak: back at stretch 1 the
+    stress is zero up to Newton's tolerance, ~1e-11 kPa, so no relative test holds there)."""
     from brain_fe.materials import MaterialParameters
     from brain_fe.protocols import Protocol
 
     prot = Protocol("compression_tension", (1.0, 0.85, 1.1), max_increment=0.05)
     a = axi_slip.run(prot, MaterialParameters(mu=(0.7,), alpha=(-12.0,), nu0=0.49))
     b = axi_slip.run(prot, MaterialParameters(mu=(2.1,), alpha=(-12.0,), nu0=0.49))
+    peak = float(np.max(np.abs(b.nominal_stress_kPa)))
     np.testing.assert_allclose(b.nominal_stress_kPa, 3 * a.nominal_stress_kPa, rtol=1e-9,
-                               atol=1e-12)
+                               atol=1e-9 * peak)
 
 
 def test_search_end_to_end_and_metrics(tiny_models, tiny_store):
