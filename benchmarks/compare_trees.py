@@ -2,7 +2,7 @@
 
     git worktree add /tmp/old <commit>
     OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/compare_trees.py --old /tmp/old \\
-        [--repeats 5] [--diagnosis-repeats 3] [--ranks 2]
+        [--repeats 5] [--diagnosis-repeats 3] [--ranks 2] [--out FILE.json]
 
 Both trees run the same workloads in fresh subprocesses with the same interpreter and JIT
 cache, alternating old/new in every repeat, so machine load affects both alike:
@@ -15,8 +15,8 @@ cache, alternating old/new in every repeat, so machine load affects both alike:
   cycles, a concealed viscoelastic effect) under ``mpirun -n RANKS``, wall time of the
   whole command.
 
-Prints a Markdown table (medians, ratio new/old) and writes
-``benchmarks/results/compare_trees.json``.
+Prints a Markdown table (medians, ratio new/old) and writes ``--out`` (default
+``benchmarks/results/compare_trees.json``).
 """
 
 from __future__ import annotations
@@ -108,6 +108,8 @@ def main() -> None:
     ap.add_argument("--diagnosis-repeats", type=int, default=3)
     ap.add_argument("--ranks", type=int, default=2)
     ap.add_argument("--skip", default="", help="comma list of workloads to skip")
+    ap.add_argument("--out", type=Path, default=HERE / "results" / "compare_trees.json",
+                    help="where the times, verdicts and stage timings go (JSON)")
     a = ap.parse_args()
     skip = set(filter(None, a.skip.split(",")))
     trees = {"old": a.old.resolve(), "new": NEW}
@@ -139,8 +141,8 @@ def main() -> None:
     print("\n".join(rows))
     if verdicts["old"]:
         print(f"verdicts: old {verdicts['old']}, new {verdicts['new']}")
-    (HERE / "results").mkdir(exist_ok=True)
-    (HERE / "results" / "compare_trees.json").write_text(json.dumps(
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.write_text(json.dumps(
         {"old": str(a.old), "times": times, "verdicts": verdicts, "stages": STAGES},
         indent=1))
 
