@@ -197,6 +197,39 @@ def test_unglued_elastic_specimen_cannot_be_pulled(_models, base_runs):
     assert res.in_contact[compressed].all() and not res.in_contact[stretched].any()
 
 
+def test_unglued_simulator_follows_the_contact_kink():
+    """The FE simulator of an unglued specimen whose contact point lies below the recorded
+    zero (stretch_offset 0.004, recorded points 0.9951 ... 0.80 as in a real 20 %
+    compression): zero stress where the true stretch exceeds 1 (the plate above the
+    specimen), elsewhere the glued specimen at the true stretch, each solved directly
+    here, to 1e-6 of the peak.  A spline through the branches is 0.8 % of the peak off."""
+    import pandas as pd
+
+    from brain_fe.materials import MaterialParameters
+    from brain_fe.model import ForwardModel
+    from brain_fe.protocols import Protocol
+    from simulators.fe import FESimulator
+
+    offset = 0.004
+    at = np.concatenate([[0.99513, 0.99801], np.linspace(0.985, 0.80, 12)])
+    obs = pd.DataFrame({"specimen": "S", "curve": "compression_tension_0.20",
+                        "test": "compression_tension", "amplitude": 0.2, "channel": "stress",
+                        "branch": "loading", "cycle": 1, "control": at,
+                        "time_s": 10.0 * (1.0 - at), "value": 1.0})
+    sim = FESimulator(obs, 4.0, 5.0, nu0=0.49, ends="unglued")
+    y = sim.predict({"mu_0": 0.9, "alpha_0": 5.0, "stretch_offset": offset,
+                     "force_offset": 0.0, "torque_offset": 0.0}).y
+    direct_model = ForwardModel(sim.geometry)
+    p = MaterialParameters(mu=(0.9,), alpha=(5.0,), nu0=0.49)
+    true = at + offset
+    direct = np.array([0.0 if x >= 1.0 else direct_model.run(
+        Protocol("compression_tension", (1.0, x), max_increment=0.015), p)
+        .nominal_stress_kPa.iloc[-1] for x in true])
+    peak = np.abs(direct).max()
+    assert (true >= 1.0).sum() == 1 and (true < 1.0).sum() == len(at) - 1
+    np.testing.assert_allclose(y, direct, atol=1e-6 * peak)
+
+
 def test_sensitivities_unglued(_models):
     """mu_0, beta_0, tau_0 of a viscoelastic specimen between unglued plates through two
     cycles to 15 % compression at 0.01/s: lift-off on each unloading, re-contact on the
