@@ -171,8 +171,9 @@ class FESimulator:
         ends = [e for e in (float(at.min()), float(at.max())) if not np.isclose(e, neutral)]
         step = 0.015 if path.test == COMPRESSION_TENSION else \
             max(abs(e - neutral) for e in ends) / 10
-        kink = _contact_kink(fm, point, path.test, float(at.min()), float(at.max()))
-        prots = [Protocol(path.test, (neutral, kink, e) if kink is not None
+        kink = _contact_kink(fm, point, path.test)
+        inside = kink is not None and float(at.min()) < kink < float(at.max())
+        prots = [Protocol(path.test, (neutral, kink, e) if inside
                           and min(neutral, e) < kink < max(neutral, e) else (neutral, e),
                           max_increment=step) for e in ends]
         resps = [fm.solve(p, point.material, interface=point.interface,
@@ -182,22 +183,30 @@ class FESimulator:
         order = np.argsort(x)
         x, keep = np.unique(x[order], return_index=True)
         # one spline on each side of the kink (both hold the kink itself)
-        pieces = [(x <= kink, at <= kink), (x >= kink, at > kink)] if kink is not None \
+        pieces = [(x <= kink, at <= kink), (x >= kink, at > kink)] if inside \
             else [(np.ones(x.size, bool), np.ones(at.size, bool))]
+        # at the kink, d/d stretch_offset jumps (central differences give the mean of the
+        # two sides): its splines leave that point out
+        at_kink = np.isclose(x, kink, rtol=0.0, atol=1e-12) if kink is not None \
+            else np.zeros(x.size, bool)
 
-        def spline(parts):
+        def spline(parts, one_sided=False):
             v = np.concatenate(parts)[order][keep]
             out = np.empty(at.size)
             for on_x, on_at in pieces:
-                if on_at.any():
-                    out[on_at] = CubicSpline(x[on_x], v[on_x])(at[on_at])
+                if not on_at.any():
+                    continue
+                use = on_x & ~at_kink if one_sided else on_x
+                use = use if use.sum() >= 2 else on_x
+                out[on_at] = CubicSpline(x[use], v[use])(at[on_at])
             return out
 
         vals, ders = {}, {}
         for ch, (_, idx) in rows.items():
             col = CHANNELS[ch].column
             vals[ch] = spline([r.values[col] for r in resps])[idx]
-            ders[ch] = [spline([r.jacobian[_key(d)][col] for r in resps])[idx]
+            ders[ch] = [spline([r.jacobian[_key(d)][col] for r in resps],
+                               one_sided=str(_key(d)) == "stretch_offset")[idx]
                         for d in needed]
         return vals, ders
 
@@ -205,16 +214,14 @@ class FESimulator:
 KINK_SNAP = 2e-5  # a kink this close to the neutral value is put on it (a solved point)
 
 
-def _contact_kink(fm, point, test: str, lo: float, hi: float) -> float | None:
+def _contact_kink(fm, point, test: str) -> float | None:
     """The control value at which the top plate of a lift-off model meets the elastic
-    specimen (true stretch 1, i.e. recorded 1 - stretch_offset) when it lies inside the
-    recorded range [lo, hi]; None without lift-off, in torsion or outside the range."""
+    specimen (true stretch 1, i.e. recorded 1 - stretch_offset); None without lift-off or
+    in torsion."""
     if fm.lift_off is None or test != COMPRESSION_TENSION:
         return None
     kink = NEUTRAL[test] - point.artefacts.stretch_offset
-    if abs(kink - NEUTRAL[test]) < KINK_SNAP:
-        kink = NEUTRAL[test]
-    return kink if lo < kink < hi else None
+    return NEUTRAL[test] if abs(kink - NEUTRAL[test]) < KINK_SNAP else kink
 
 
 def _key(d):
