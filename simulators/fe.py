@@ -15,9 +15,10 @@ Two ways to follow the recordings:
   With plates that lift off (``ends="unglued"``) the response has a kink where the plate
   meets the specimen (zero force above it), inside the recorded range when the contact
   point is shifted (``stretch_offset`` > 0) or the curve reaches tension: the kink is
-  then solved as a point of the branch and the spline is split there (one spline across
-  it was 0.8 % of the peak stress off at the first point of a real 20 % compression,
-  which stalled fits of the contact offset);
+  then solved as a point of the branch and the spline is split there, and the spline of
+  d/d stretch_offset leaves the kink out (the central differences straddle it there);
+  one spline across it was 0.8 % of the peak stress off at the first point of a real
+  20 % compression and stalled fits of the contact offset;
 * ``path="auto"`` (default): branches for elastic models, the recorded path for history.
 
 ``correction`` (an array over the observations, default 0) is added to every prediction:
