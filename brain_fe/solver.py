@@ -31,6 +31,12 @@ class NewtonReport:
 # stopped with a zero pivot, KSP reason -11) and has no useful fill-reducing ordering in
 # 3D (a refinement-2 cylinder took minutes per factorisation instead of about a second).
 DIRECT_SOLVER = "mumps"
+# MUMPS sizes its workspace from the first (symbolic) analysis, which a solver keeps for
+# every later factorisation; pivoting on a harder matrix of a later run can need more
+# (its error -9, a failed linear solve, KSP reason -11), so that whether a solve succeeds
+# depended on the runs before it.  Room for that fill-in, in per cent of the estimate
+# (MUMPS ICNTL(14), default 20-35):
+MUMPS_WORKSPACE_PERCENT = 200
 
 
 class NewtonSolver:
@@ -64,6 +70,11 @@ class NewtonSolver:
         pc = self.ksp.getPC()
         pc.setType("lu")
         pc.setFactorSolverType(DIRECT_SOLVER)
+        prefix = f"brainmech_newton_{id(self)}_"  # options of this solver alone
+        self.ksp.setOptionsPrefix(prefix)
+        options = PETSc.Options()
+        options[f"{prefix}mat_mumps_icntl_14"] = MUMPS_WORKSPACE_PERCENT
+        self.ksp.setFromOptions()  # the factor matrix reads it at its first factorisation
         self.ksp.setOperators(self.A)
         self._factorised = (-1, 0)  # (solve, iteration) the factorisation was made at
         self._state = self._iteration = 0
