@@ -70,11 +70,13 @@ class NewtonSolver:
         pc = self.ksp.getPC()
         pc.setType("lu")
         pc.setFactorSolverType(DIRECT_SOLVER)
-        prefix = f"brainmech_newton_{id(self)}_"  # options of this solver alone
-        self.ksp.setOptionsPrefix(prefix)
-        options = PETSc.Options()
-        options[f"{prefix}mat_mumps_icntl_14"] = MUMPS_WORKSPACE_PERCENT
-        self.ksp.setFromOptions()  # the factor matrix reads it at its first factorisation
+        if comm.size == 1:  # where the diagnosis runs its models; distributed, DOLFINx
+            # 0.9's MUMPS failed a Maxwell run with it (KSP -11): the default stays there
+            prefix = f"brainmech_newton_{id(self)}_"  # options of this solver alone
+            self.ksp.setOptionsPrefix(prefix)
+            options = PETSc.Options()
+            options[f"{prefix}mat_mumps_icntl_14"] = MUMPS_WORKSPACE_PERCENT
+            self.ksp.setFromOptions()  # read by the factor matrix when it is created
         self.ksp.setOperators(self.A)
         self._factorised = (-1, 0)  # (solve, iteration) the factorisation was made at
         self._state = self._iteration = 0
