@@ -37,6 +37,7 @@ DIRECT_SOLVER = "mumps"
 # depended on the runs before it.  Room for that fill-in, in per cent of the estimate
 # (MUMPS ICNTL(14), default 20-35):
 MUMPS_WORKSPACE_PERCENT = 200
+SERIAL_PREFIX = "brainmech_newton_serial_"  # PETSc options of the one-rank solvers
 
 
 class NewtonSolver:
@@ -72,10 +73,8 @@ class NewtonSolver:
         pc.setFactorSolverType(DIRECT_SOLVER)
         if comm.size == 1:  # where the diagnosis runs its models; distributed, DOLFINx
             # 0.9's MUMPS failed a Maxwell run with it (KSP -11): the default stays there
-            prefix = f"brainmech_newton_{id(self)}_"  # options of this solver alone
-            self.ksp.setOptionsPrefix(prefix)
-            options = PETSc.Options()
-            options[f"{prefix}mat_mumps_icntl_14"] = MUMPS_WORKSPACE_PERCENT
+            self.ksp.setOptionsPrefix(SERIAL_PREFIX)  # one value for every such solver
+            PETSc.Options()[f"{SERIAL_PREFIX}mat_mumps_icntl_14"] = MUMPS_WORKSPACE_PERCENT
             self.ksp.setFromOptions()  # read by the factor matrix when it is created
         self.ksp.setOperators(self.A)
         self._factorised = (-1, 0)  # (solve, iteration) the factorisation was made at
