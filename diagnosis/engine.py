@@ -55,7 +55,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-8"
+ENGINE_VERSION = "2026.11-open-world-9"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
@@ -207,7 +207,6 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                   _share_with(comm), noise)
     rounds, current, chosen, J = [], base, [], J_base
     ambiguous, notes = [], []
-    final_noise = rem = None
     while len(chosen) < max_effects:
         cands = [e for e in (effects or lib) if e not in chosen and compatible(e, chosen)]
         if not cands:
@@ -241,15 +240,14 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
             chosen = [*chosen, added]
             current, chosen, dropped = _retest(ctx, new, chosen, rnd.noise)
             rnd.dropped = dropped
-            final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
-            if not rem["systematic"]:  # explained: no further effect can earn a place
-                break
+            # no stop at "nothing systematic remains": the noise model of this fit's
+            # residual may take a second effect's smooth misfit for wander; the next
+            # round judges every candidate under the noise of its own best fit
             J = _jacobian(sim, comm, current, _all_names(lib, chosen))
         finally:  # every round, the one that stops too
             entry["whole_round"] = round(time.perf_counter() - t_round, 2)
     t_end = time.perf_counter()
-    if final_noise is None or final_noise.fitted_to is not current:
-        final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
+    final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
     located = loc.locate(obs, final_noise.whiten(_residual(obs, base)), 1.0,
                           sigma_dof=final_noise.dof)
     sd = final_noise.sd()

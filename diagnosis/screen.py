@@ -49,6 +49,7 @@ class Score:
     start: dict  # Gauss-Newton start of the effect's fit (all parameters)
     point: dict  # the neutral design point the score was taken at
     seconds: float = 0.0  # cost of the prediction (a guide to the cost of the fit)
+    held: tuple = ()  # effect parameters whose step was too long: they start at the point
 
 
 def data_scales(obs: pd.DataFrame, values: dict, height_mm: float = 5.0) -> dict:
@@ -98,6 +99,14 @@ def design(effect, nu0: float, scales: dict) -> list[dict]:
 MAX_STEP_OF_RANGE = 0.3  # a Gauss-Newton step longer than this share of the bounds is not
 # trusted as a start
 
+
+def _too_long(effect, name, step: float) -> bool:
+    """Whether the step of an effect parameter is too long to be trusted as a start."""
+    if name not in effect.names:
+        return False
+    lo, hi = effect.bounds(name)
+    return abs(step) > MAX_STEP_OF_RANGE * (hi - lo)
+
 # Parameters with no effect at the neutral point (they act through another): not scored
 NUISANCE = {Param("log10_tau", 0), Param("log10_softening_m"), Param("alpha", 1)}
 
@@ -136,12 +145,22 @@ def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dic
     sb, *_ = np.linalg.lstsq(Jb, -z_cur, rcond=None)
     current_chi2 = float(np.sum((z_cur + Jb @ sb) ** 2))
     start = dict(values)
-    d = step / np.where(norms[active] > 0, norms[active], 1.0)
-    for j, dj in zip(active, d, strict=True):
-        if names[j] in effect.names:
-            lo, hi = effect.bounds(names[j])
-            if abs(dj) > MAX_STEP_OF_RANGE * (hi - lo):  # far beyond the linear model:
-                continue  # start at the design point itself
-        start[names[j]] = values[names[j]] + float(dj)  # the fit clips it to the bounds
+    free = list(range(len(active)))  # columns of Ja that take their Gauss-Newton step
+    held = []
+    while True:
+        d = step / np.where(norms[active] > 0, norms[active], 1.0)[free]
+        too_long = [k for k, dk in zip(free, d, strict=True) if _too_long(
+            effect, names[active[k]], dk)]
+        if not too_long:
+            break
+        # far beyond the linear model: such a parameter starts at the design point itself,
+        # and the others take the step solved with it held there, not the one solved
+        # jointly with its long step
+        free = [k for k in free if k not in too_long]
+        held += [str(names[active[k]]) for k in too_long]
+        step, *_ = np.linalg.lstsq(Ja[:, free], -z, rcond=None)
+    for k, dk in zip(free, d, strict=True):
+        name = names[active[k]]
+        start[name] = values[name] + float(dk)  # the fit clips it to the bounds
     return Score(effect.name, max(current_chi2 - predicted, 0.0), len(active) - nb, start,
-                 point, seconds)
+                 point, seconds, tuple(held))

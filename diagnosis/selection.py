@@ -114,9 +114,9 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
               J_current: np.ndarray, progress=None, first: Round | None = None) -> Round:
     """Score and fit every candidate added to the current model.  After the first round
     (``first``), only the candidates it fitted are considered, each at the design point
-    that scored best there: an effect with no score at the base fit is not unmasked by
-    another effect in practice, and every later round follows the recorded path of a
-    history model, where a score costs several seconds."""
+    whose fit won there (:func:`second_start`): an effect with no score at the base fit
+    is not unmasked by another effect in practice, and every later round follows the
+    recorded path of a history model, where a score costs several seconds."""
     obs, sim = ctx.obs, ctx.sim
     t0 = time.perf_counter()
     names = _names(ctx, current_effects)
@@ -146,15 +146,22 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
     m = max(len(candidates), 1)
     to_fit = [e for e in candidates if e in best and best[e].lm >= SCREEN_FRACTION
               * ctx.needed(len(ctx.lib[e].names), m)]
+    starts = [(e, best[e]) for e in to_fit]
+    starts += [(e, s) for e in to_fit if (s := second_start(scored, best[e], ctx.needed(
+        len(ctx.lib[e].names), m))) is not None]
     t1 = time.perf_counter()
     if progress:
         progress(f"+{'+'.join(current_effects) or 'base'}: fitting {', '.join(to_fit) or '-'}")
     label = {e: "+".join([*current_effects, e]) for e in to_fit}
-    results = ctx.share(to_fit, lambda e: _fit(ctx, best[e].start, [*current_effects, e],
-                                               label[e], RANKING_NFEV),
-                        lambda e: best[e].seconds)
-    fits = {e: f for e, f in zip(to_fit, results, strict=True) if f is not None}
-    failed = [e for e, f in zip(to_fit, results, strict=True) if f is None]
+    results = ctx.share(starts, lambda it: _fit(ctx, it[1].start, [*current_effects, it[0]],
+                                                label[it[0]], RANKING_NFEV),
+                        lambda it: it[1].seconds)
+    fits: dict = {}
+    for (e, sc), f in zip(starts, results, strict=True):  # the better of an effect's starts
+        if f is not None and (e not in fits or f.chi2 < fits[e].chi2):
+            fits[e] = f
+            best[e] = sc  # later rounds start from the design point that won
+    failed = [e for e in to_fit if e not in fits]
     seconds = {"scores": t1 - t0, "fits": time.perf_counter() - t1}
     log.info("round from %s: %d design points scored in %.1f s, %d candidates fitted in "
              "%.1f s", "+".join(current_effects) or "base", len(points), seconds["scores"],
@@ -165,6 +172,22 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
                     ", ".join(unscored))
     return Round(list(current_effects), best, fits, [], failed=failed, seconds=seconds,
                  unscored=unscored)
+
+
+def second_start(scored: list, best, needed: float):
+    """A second start for an effect whose best-scoring design point is far from linear (the
+    Gauss-Newton step of one of its parameters too long to be trusted, so the fit starts
+    at the point itself), or None: the best-scoring of its other design points that could
+    earn a place by itself, one whose step was trusted first.  A far-from-linear point may
+    promise gains its neighbourhood does not hold (a stiff glue layer, when the data need
+    a soft one behind a ridge of the misfit), so the effect's fit is run from both starts
+    and the better one stands.  Not for history effects, whose fits cost several elastic
+    ones each (their design varies only the parameter a score cannot see)."""
+    if not best.held or best.effect in HISTORY:
+        return None
+    other = [s for s in scored if s is not None and s.effect == best.effect
+             and s is not best and s.lm >= SCREEN_FRACTION * needed]
+    return max(other, key=lambda s: (not s.held, s.lm)) if other else None
 
 
 def compare(ctx: Context, rnd: Round, current: Fit, m: int, noise) -> list:

@@ -1,0 +1,81 @@
+"""The score screen's Gauss-Newton start on a linear model, where every step is exact."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+
+from brain_fe.parameters import Param
+from diagnosis.screen import MAX_STEP_OF_RANGE, score
+
+MU, EFF = Param("mu", 0), Param("beta", 0)
+
+
+class _Effect:
+    name = "linear"
+    names = [EFF]
+
+    @staticmethod
+    def bounds(_name):
+        return 0.0, 1.0
+
+
+def _problem(effect_size: float):
+    """y = mu * a + beta * b with a, b partly aligned; data at mu = 2, beta = effect_size."""
+    x = np.linspace(0.0, 1.0, 40)
+    a, b = x, x**2
+    data = 2.0 * a + effect_size * b
+
+    def predict(values, names):
+        y = values[MU] * a + values[EFF] * b
+        cols = {MU: a, EFF: b}
+        jac = np.column_stack([cols[n] for n in names]) if names else np.zeros((x.size, 0))
+        return types.SimpleNamespace(y=y, jacobian=jac)
+
+    sim = types.SimpleNamespace(predict=predict)
+    obs = {"value": data}
+    current = types.SimpleNamespace(values={MU: 1.0, EFF: 0.0},
+                                    prediction=predict({MU: 1.0, EFF: 0.0}, []).y)
+    return sim, obs, a, b, current
+
+
+class _Obs(dict):
+    def __getitem__(self, k):
+        return types.SimpleNamespace(to_numpy=lambda dtype=None: dict.__getitem__(self, k))
+
+
+def test_score_start_takes_the_joint_step_when_it_is_short():
+    sim, obs, a, _, current = _problem(0.2)
+    s = score(sim, _Obs(obs), np.ones(40), current, _Effect, {"beta_0": 0.0}, [MU],
+              a[:, None])
+    # a linear model: one Gauss-Newton step lands on the truth (1e-10)
+    assert abs(s.start[MU] - 2.0) < 1e-10 and abs(s.start[EFF] - 0.2) < 1e-10
+    assert s.dof == 1 and s.lm > 0
+
+
+def test_score_start_holds_a_long_step_and_solves_the_base_without_it():
+    size = 3.0 / MAX_STEP_OF_RANGE  # ten times the trusted share of the range
+    sim, obs, a, b, current = _problem(size)
+    s = score(sim, _Obs(obs), np.ones(40), current, _Effect, {"beta_0": 0.0}, [MU],
+              a[:, None])
+    assert s.start[EFF] == 0.0  # held at the design point
+    # mu takes the least-squares step of the base alone, not the joint one (mu = 2)
+    mu_alone = float(np.linalg.lstsq(a[:, None], obs["value"], rcond=None)[0][0])
+    assert abs(s.start[MU] - mu_alone) < 1e-10 and abs(mu_alone - 2.0) > 1.0
+
+
+def test_second_start_only_for_a_held_best_point():
+    from diagnosis.screen import Score
+    from diagnosis.selection import second_start
+
+    held = Score("g", 100.0, 1, {}, {"log10_k": 2.0}, held=("log10_k",))
+    near = Score("g", 60.0, 1, {}, {"log10_k": 0.2})
+    weak = Score("g", 1.0, 1, {}, {"log10_k": -1.0})
+    other = Score("h", 90.0, 1, {}, {})
+    assert second_start([held, near, weak, other, None], held, needed=20.0) is near
+    assert second_start([held, weak], held, needed=20.0) is None  # cannot earn a place
+    far = Score("g", 80.0, 1, {}, {"log10_k": 1.0}, held=("log10_k",))
+    assert second_start([held, far, weak], held, needed=20.0) is far  # held, but the next
+    assert second_start([held, far, near], held, needed=20.0) is near  # trusted first
+    assert second_start([near, weak], near, needed=20.0) is None  # the best was trusted
