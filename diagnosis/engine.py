@@ -388,9 +388,7 @@ def _noise_of(obs, f: Fit, stated) -> NoiseModel:
     B = systematic_basis(obs, f.prediction)
     if f.jacobian is not None and np.isfinite(f.jacobian).all():
         B = np.hstack([B, f.jacobian])
-    nm = fit_noise(obs, _residual(obs, f), stated=stated, systematic=B)
-    nm.fitted_to = f
-    return nm
+    return fit_noise(obs, _residual(obs, f), stated=stated, systematic=B)
 
 
 def _residual(obs, f: Fit) -> np.ndarray:

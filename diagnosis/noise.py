@@ -181,7 +181,6 @@ class NoiseModel:
     def __init__(self, obs: pd.DataFrame, series: dict[tuple, ChannelNoise],
                  dof: np.ndarray | None = None):
         self.obs = obs
-        self.fitted_to = None  # the fit whose residual it was estimated from, if any
         self.params = dict(series)
         self.series = _series(obs)
         self._chol = [self._cholesky(s) for s in self.series]

@@ -138,7 +138,8 @@ def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dic
     norms = np.linalg.norm(J, axis=0)
     scale = max(float(norms[:nb].max()) if nb else 1.0, 1e-300)
     active = [j for j in range(len(names)) if j < nb or norms[j] > 1e-9 * scale]
-    Ja = J[:, active] / np.where(norms[active] > 0, norms[active], 1.0)
+    scale_a = np.where(norms[active] > 0, norms[active], 1.0)  # of the active columns
+    Ja = J[:, active] / scale_a
     step, *_ = np.linalg.lstsq(Ja, -z, rcond=None)
     predicted = float(np.sum((z + Ja @ step) ** 2))
     Jb = J[:, :nb] / np.where(norms[:nb] > 0, norms[:nb], 1.0)
@@ -148,7 +149,7 @@ def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dic
     free = list(range(len(active)))  # columns of Ja that take their Gauss-Newton step
     held = []
     while True:
-        d = step / np.where(norms[active] > 0, norms[active], 1.0)[free]
+        d = step / scale_a[free]
         too_long = [k for k, dk in zip(free, d, strict=True) if _too_long(
             effect, names[active[k]], dk)]
         if not too_long:

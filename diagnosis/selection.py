@@ -144,11 +144,12 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
         if s is not None and (s.effect not in best or s.lm > best[s.effect].lm):
             best[s.effect] = s
     m = max(len(candidates), 1)
+    needed = {e: ctx.needed(len(ctx.lib[e].names), m) for e in best}
     to_fit = [e for e in candidates if e in best and best[e].lm >= SCREEN_FRACTION
-              * ctx.needed(len(ctx.lib[e].names), m)]
+              * needed[e]]
     starts = [(e, best[e]) for e in to_fit]
-    starts += [(e, s) for e in to_fit if (s := second_start(scored, best[e], ctx.needed(
-        len(ctx.lib[e].names), m))) is not None]
+    starts += [(e, s) for e in to_fit
+               if (s := second_start(scored, best[e], needed[e])) is not None]
     t1 = time.perf_counter()
     if progress:
         progress(f"+{'+'.join(current_effects) or 'base'}: fitting {', '.join(to_fit) or '-'}")
