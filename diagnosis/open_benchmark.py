@@ -32,7 +32,7 @@ from simulators.fe import FESimulator
 from .benchmark import rms_over_true_noise
 from .effects import EFFECTS
 from .engine import ENGINE_VERSION, diagnose
-from .open_world import NOISE_KINDS, OUTSIDE, PAIRS, make_case, noise_sd
+from .open_world import NOISE_KINDS, OUTSIDE, PAIRS, VISIBLE, make_case, noise_sd
 
 log = logging.getLogger(__name__)
 
@@ -175,6 +175,15 @@ def _named_within_ambiguity(label: dict, res: dict) -> bool:
     return len(want ^ got) == 2 and (want ^ got) in swaps
 
 
+def separable(label: dict) -> bool | None:
+    """Whether a combination's tests can show every one of its effects beside the others
+    (each leaves at least ``VISIBLE`` noise SDs to the best model with the others:
+    :func:`diagnosis.open_world.visible_beside`); None when the label does not say
+    (single effects, labels of runs before the measure)."""
+    beside = label.get("misfit_beside_the_other_over_noise") or {}
+    return min(beside.values()) >= VISIBLE if beside else None
+
+
 def score(labels: dict, results: dict) -> dict:
     """Scores per kind, the confusion matrices (expected x verdict, kind x status), RMS."""
     rows = []
@@ -190,6 +199,7 @@ def score(labels: dict, results: dict) -> dict:
                                                         float("nan")),
                      "noise_kinds": "+".join(lab["noise_kinds"]),
                      "misfit": max(lab["base_misfit_over_noise"].values(), default=0.0),
+                     "separable": separable(lab),
                      "elapsed_s": r.get("elapsed_s", float("nan"))})
     df = pd.DataFrame(rows)
     out: dict = {"cases": len(df), "by_case": rows}
@@ -197,6 +207,9 @@ def score(labels: dict, results: dict) -> dict:
         g = df[df["kind"] == kind]
         out[kind] = {"cases": len(g), "correct": int(g["correct"].sum()),
                      "within_ambiguity": int(g["within_ambiguity"].sum())}
+    sep = df[(df["kind"] == "pair") & df["separable"].eq(True)]  # None: not measured
+    out["pair"].update(separable=len(sep), separable_correct=int(sep["correct"].sum()),
+                       measured=int(df[df["kind"] == "pair"]["separable"].notna().sum()))
     out["control"]["false_alarms"] = int((df[df["kind"] == "control"]["verdict"] != "none"
                                           ).sum())
     o = df[df["kind"] == "outside"]
@@ -237,7 +250,10 @@ def summary_markdown(s: dict) -> str:
              f"- single effects named: {_pct(si['correct'], si['cases'])} (within a reported "
              f"ambiguity: {_pct(si['within_ambiguity'], si['cases'])})",
              f"- pairs, exact set: {_pct(p['correct'], p['cases'])} (within a reported "
-             f"ambiguity: {_pct(p['within_ambiguity'], p['cases'])})",
+             f"ambiguity: {_pct(p['within_ambiguity'], p['cases'])})"
+             + (f"; of the pairs whose tests separate both effects (each >= {VISIBLE} noise "
+                f"SD beside the other): {_pct(p['separable_correct'], p['separable'])}"
+                if p.get("measured") else ""),
              f"- outside the library, `unexplained`: {_pct(o['correct'], o['cases'])}; "
              f"not `explained`: {_pct(o['not_explained'], o['cases'])}",
              f"- explained cases, RMS after / true noise: median "

@@ -36,6 +36,30 @@ def test_a_pair_is_scored_as_a_set():
     assert _correct({"expected": "none"}, {"verdict": "none"})
 
 
+def test_pairs_are_also_scored_where_their_tests_separate_both_effects():
+    """A pair counts among the separable ones when each effect leaves at least VISIBLE
+    noise SDs beside the other (the stored world008: compressibility 0.43 beside a soft
+    glue layer); labels without the measure are not counted either way."""
+    from diagnosis.open_benchmark import score, separable
+    from diagnosis.open_world import VISIBLE
+
+    def pair(beside, verdict):
+        lab = {"kind": "pair", "effects": ["a", "b"], "expected": "a+b",
+               "noise_kinds": ["white"], "base_misfit_over_noise": {"a": 3.0, "b": 3.0}}
+        if beside is not None:
+            lab["misfit_beside_the_other_over_noise"] = beside
+        return lab, {"verdict": verdict, "status": "explained", "effects": verdict.split("+"),
+                     "elapsed_s": 1.0, "rms_after_over_true_noise": 1.0}
+
+    cases = {"p1": pair({"a": 0.43, "b": 0.77}, "b"), "p2": pair({"a": 2.0, "b": VISIBLE},
+                                                                  "a+b"),
+             "p3": pair({"a": 2.0, "b": 5.0}, "a"), "p4": pair(None, "a+b")}
+    assert [separable(c[0]) for c in cases.values()] == [False, True, True, None]
+    s = score({k: v[0] for k, v in cases.items()}, {k: v[1] for k, v in cases.items()})
+    assert s["pair"] == {"cases": 4, "correct": 2, "within_ambiguity": 2, "separable": 2,
+                         "separable_correct": 1, "measured": 3}
+
+
 def test_recorded_times_are_not_on_the_fe_steps():
     """The instrument's clock: a fixed interval from a random phase with jitter, inside the
     protocol, never on its turning points."""
@@ -159,3 +183,27 @@ def test_a_candidate_that_cannot_be_scored_is_listed():
     (row,) = compare(ctx, rnd, SimpleNamespace(k=3), 6, None)
     assert row["effect"] == "viscoelastic" and row["score_failed"]
     assert not row["significant"] and np.isnan(row["score"])
+
+
+def test_an_effect_at_zero_size_is_invisible_beside_its_partner():
+    """The generator's pair rule (diagnosis.open_world.visible_beside): the misfit a truth
+    leaves to the best model with the other effect of the pair.  A compressibility at zero
+    size (nu0 = 0.49, the base's) beside a soft glue layer: the model with the glue layer
+    is the truth itself, so the misfit is zero up to the two paths' difference (the
+    generator interpolates its FE steps at the instrument's clock, the simulator solves
+    at the recorded points: 0.03 noise SD here, bound 0.1); the glue layer
+    beside a free nu0 stays visible (nu0 cannot soften torsion at small strain the way a
+    compliant layer does)."""
+    from brain_fe.parameters import Param
+    from diagnosis.open_world import NU0, Specimen, Truth, visible_beside
+
+    spec = Specimen(4.0, 5.0, 0.15, (0.3,), 1, 0.03, 0.01)
+    rng = np.random.default_rng(0)
+    times = [record_times(spec, p, rng) for p in spec.protocols()]
+    truth = Truth({Param("mu", 0): 1.0, Param("alpha", 0): -15.0, Param("nu0"): NU0,
+                   Param("log10_k"): 0.3})
+    sd = {"stress": 0.01, "torque": 0.1, "axial_force": 0.02}
+    beside = visible_beside(["compressibility", "imperfect_gluing"], spec, truth, times, sd,
+                            {})
+    assert beside["compressibility"] < 0.1
+    assert beside["imperfect_gluing"] > 1.5

@@ -1,0 +1,131 @@
+"""Could any selection rule have named it?  The *oracle* test of a missed open-world case.
+
+For a stored case whose verdict named only part of the true set of effects, the model of
+the true set is fitted from the true parameters (the oracle start, which no diagnosis
+has) and compared with the model the diagnosis named, refitted from its own optimum, with
+the diagnosis's base fit, discretisation correction and weights, under the noise model of
+the oracle fit's residual (the round's rule: the best fit's residual).  The
+likelihood-ratio statistic is set against what the diagnosis demands of the missing
+parameters in that round (``Context.needed``: Bonferroni over the round's candidates and
+the BIC margin).  A ratio below 1 means that even the true model does not earn its place
+in these recordings: no selection rule at the diagnosis's significance could name it.
+
+    OPENBLAS_NUM_THREADS=1 mpirun -n 2 .venv/bin/python benchmarks/oracle_open.py \\
+        --benchmark open/ --results rediag/ --out oracle.json [world029 ...]
+
+``--results``: the folder of the verdicts to test (``*_result.json`` of
+``benchmarks/rediagnose_open.py`` or the benchmark's own ``cases/``); without case names,
+every pair whose named effects are a strict subset of the truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+from mpi4py import MPI
+from rediagnose_open import _case  # this folder is on the path when run as a script
+
+from brain_fe.io import write_json_atomic
+from brain_fe.parallel import SharedCounter, dynamic_items
+from diagnosis.effects import BASE_NAMES, library
+from diagnosis.engine import _base, _noise_of
+from diagnosis.fitting import fit
+from diagnosis.selection import Context, Union
+from simulators.fe import FESimulator
+
+ALPHA, BIC_MARGIN = 1e-3, 10.0  # the diagnosis's defaults (diagnosis.engine.diagnose)
+
+
+def _load(src: Path, results: Path, name: str):
+    lab, obs = _case(src, name)
+    return lab, obs, json.loads((results / f"{name}_result.json").read_text())
+
+
+def missed_subsets(src: Path, results: Path) -> list[str]:
+    """Single and pair cases whose named effects are a strict subset of the truth."""
+    out = []
+    for p in sorted(results.glob("*_result.json")):
+        name = p.name.removesuffix("_result.json")
+        lab = json.loads((src / "labels" / f"{name}.json").read_text())
+        named = set(json.loads(p.read_text()).get("effects", []))
+        truth = set(lab["effects"])
+        if lab["kind"] in ("single", "pair") and named < truth:
+            out.append(name)
+    return out
+
+
+def oracle(lab: dict, obs, res: dict) -> dict:
+    spec = lab["specimen"]
+    sim = FESimulator(obs, spec["radius_mm"], spec["height_mm"], refinement=1)
+    fine = FESimulator(obs, spec["radius_mm"], spec["height_mm"], refinement=2)
+    lib = library(sim.kind)
+    base, weights, _, _ = _base(sim, fine, obs, None)
+    named, truth = list(res.get("effects", [])), list(lab["effects"])
+
+    def names(effects):
+        return list(BASE_NAMES) + [n for e in effects for n in lib[e].names]
+
+    def run(effects, start):
+        return fit(sim, obs, weights, start, names(effects), effect="+".join(effects)
+                   or "base", max_nfev=40, effect_def=Union(lib, effects) if effects else None)
+
+    start_named = {**base.values, **res["refit_parameters"]}
+    f_named = run(named, start_named) if named else base
+    start_truth = {**base.values, **{k: v for k, v in lab["truth"].items()
+                                     if k in {str(n) for n in names(truth)}}}
+    f_truth = run(truth, start_truth)
+    if f_named.chi2 < f_truth.chi2:  # the named model's optimum is the better start
+        f_truth = min(f_truth, run(truth, {**start_truth, **f_named.values}),
+                      key=lambda f: f.chi2)
+    noise = _noise_of(obs, f_truth, None)
+    ctx = Context(sim, obs, weights, lib, list(BASE_NAMES), ALPHA, BIC_MARGIN, 40, None)
+    k = len(names(truth)) - len(names(named))
+    m = len(lib) - len(named)  # the round's candidates
+    lrt = ctx.chi2(noise, f_named) - ctx.chi2(noise, f_truth)
+    need = ctx.needed(k, m)
+    return {"named": "+".join(sorted(named)) or "none", "truth": "+".join(sorted(truth)),
+            "extra_parameters": k, "lrt": lrt, "needed": need, "ratio": lrt / need,
+            "detectable": bool(lrt >= need),
+            "oracle_parameters": {str(p): float(v) for p, v in f_truth.values.items()},
+            "true_parameters": lab["truth"]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--benchmark", required=True, help="folder of an open-world benchmark")
+    ap.add_argument("--results", required=True, help="folder of the verdicts to test")
+    ap.add_argument("--out", required=True, help="JSON file of the oracle tests")
+    ap.add_argument("cases", nargs="*")
+    a = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    comm = MPI.COMM_WORLD
+    src, results = Path(a.benchmark), Path(a.results)
+    names = a.cases or missed_subsets(src, results)
+    counter = SharedCounter(comm)
+    mine = {}
+    for name in dynamic_items(names, counter):
+        lab, obs, res = _load(src, results, name)
+        mine[name] = oracle(lab, obs, res)
+        r = mine[name]
+        logging.getLogger("oracle").warning(
+            "%s: named %s, truth %s: LRT %.1f of %.1f needed (%.2f)", name, r["named"],
+            r["truth"], r["lrt"], r["needed"], r["ratio"])
+    counter.free()
+    every = {k: v for part in comm.allgather(mine) for k, v in part.items()}
+    if comm.rank == 0:
+        rows = [every[n] for n in names]
+        write_json_atomic(Path(a.out), {"cases": {n: every[n] for n in names},
+                                        "undetectable": sum(not r["detectable"] for r in rows),
+                                        "of": len(rows)}, indent=1, default=str)
+        for n in names:
+            r = every[n]
+            logging.getLogger("oracle").warning(
+                "| %s | %s | %s | %.1f | %.1f | %s |", n, r["truth"], r["named"], r["lrt"],
+                r["needed"], "yes" if r["detectable"] else "no")
+
+
+if __name__ == "__main__":
+    main()
