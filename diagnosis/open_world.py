@@ -385,11 +385,12 @@ def _shapes(rng, mu: float, spec: Specimen) -> dict:
             "stiffness_drift": {}, "permanent_set": {}}
 
 
-def _base_misfit(spec, truth, times, noise_sd_ch, models, beside: tuple = ()) -> float:
+def misfit_left(spec, truth, times, noise_sd_ch, models, beside: tuple = (),
+                 start: dict | None = None) -> float:
     """RMS (in noise SDs) of the best base fit to the noiseless recordings, on the
     working mesh (truth and fit alike: the calibration measures the effect only).  With
-    library effects ``beside`` (started at their true values), the best fit of the base
-    model with them: what the truth's other effects show beyond those."""
+    library effects ``beside`` (started at their true values, or at ``start``), the best
+    fit of the base model with them: what the truth's other effects show beyond those."""
     clean = simulate(spec, truth, times, refinement=CALIBRATION_REFINEMENT, substeps=1,
                      models=models)
     clean["specimen"] = "calibration"
@@ -400,7 +401,8 @@ def _base_misfit(spec, truth, times, noise_sd_ch, models, beside: tuple = ()) ->
     sigma = obs["channel"].map(noise_sd_ch).to_numpy(float)
     lib = library(sim.kind)
     names = [*BASE_NAMES, *(n for e in beside for n in lib[e].names)]
-    start = {k: truth.values[k] for k in names}
+    given = {Param.parse(k): v for k, v in (start or {}).items()}
+    start = {k: given[k] if k in given else truth.values[k] for k in names}
     f = fit(sim, obs, sigma, start, names, max_nfev=30, effect="+".join(beside) or "base",
             effect_def=Union(lib, beside) if beside else None)
     return float(np.sqrt(np.mean(f.z**2)))
@@ -420,7 +422,7 @@ def calibrate(effect: str, target: float, spec, base, shapes, times, sd, models
     cap = MAX_OUTSIDE.get(effect, MAX_SIZE.get(effect, 10.0))
     size, misfit = 1.0, 0.0
     for _ in range(4):
-        misfit = _base_misfit(spec, make_truth(base, {effect: size}, shapes), times, sd,
+        misfit = misfit_left(spec, make_truth(base, {effect: size}, shapes), times, sd,
                               models)
         log.debug("%s size %.3g: base misfit %.2f (target %.2f)", effect, size, misfit, target)
         if abs(misfit / target - 1) < 0.25:
@@ -434,10 +436,10 @@ def calibrate(effect: str, target: float, spec, base, shapes, times, sd, models
 
 def visible_beside(effects: list, spec, truth: Truth, times, sd, models) -> dict:
     """Per library effect of a combination: the misfit (noise SDs, RMS) the truth leaves
-    to the best model with every *other* effect of it (:func:`_base_misfit` with
+    to the best model with every *other* effect of it (:func:`misfit_left` with
     ``beside``).  Below ``VISIBLE`` its partner mimics it (a compressibility that a soft
     glue layer absorbs in these tests): the recordings cannot show both."""
-    return {e: _base_misfit(spec, truth, times, sd, models,
+    return {e: misfit_left(spec, truth, times, sd, models,
                             beside=tuple(x for x in effects if x != e))
             for e in effects if e not in OUTSIDE}
 
