@@ -177,7 +177,7 @@ def across_specimens(results: dict, groups: dict, path) -> None:
     import matplotlib.pyplot as plt
 
     names = list(dict.fromkeys(groups.values()))
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(13, 4.2))
     markers = "osD^v<>phX*"
     for k, g in enumerate(names):
         rs = [r for n, r in results.items() if groups.get(n) == g and "error" not in r]
@@ -198,7 +198,7 @@ def across_specimens(results: dict, groups: dict, path) -> None:
         bx.barh(names, h, left=bottom, label=v)
         bottom += h
     bx.set_xlabel("specimens")
-    bx.legend(fontsize=7)
+    bx.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # off the bars
     fig.tight_layout()
     write_figure_atomic(fig, path, dpi=110)
     plt.close(fig)
