@@ -180,8 +180,10 @@ def separable(label: dict) -> bool | None:
     (each leaves at least ``VISIBLE`` noise SDs to the best model with the others:
     :func:`diagnosis.open_world.visible_beside`); None when the label does not say
     (single effects, labels of runs before the measure)."""
-    beside = label.get("misfit_beside_the_other_over_noise") or {}
-    return min(beside.values()) >= VISIBLE if beside else None
+    beside = list((label.get("misfit_beside_the_other_over_noise") or {}).values())
+    if not beside or not np.isfinite(beside).all():
+        return None
+    return bool(min(beside) >= VISIBLE)
 
 
 def score(labels: dict, results: dict) -> dict:

@@ -438,10 +438,20 @@ def visible_beside(effects: list, spec, truth: Truth, times, sd, models) -> dict
     """Per library effect of a combination: the misfit (noise SDs, RMS) the truth leaves
     to the best model with every *other* effect of it (:func:`misfit_left` with
     ``beside``).  Below ``VISIBLE`` its partner mimics it (a compressibility that a soft
-    glue layer absorbs in these tests): the recordings cannot show both."""
-    return {e: misfit_left(spec, truth, times, sd, models,
-                            beside=tuple(x for x in effects if x != e))
-            for e in effects if e not in OUTSIDE}
+    glue layer absorbs in these tests): the recordings cannot show both.  NaN where the
+    model with the others cannot be solved (the measure is then not known; the case
+    stands as drawn)."""
+    out = {}
+    for e in effects:
+        if e in OUTSIDE:
+            continue
+        try:
+            out[e] = misfit_left(spec, truth, times, sd, models,
+                                 beside=tuple(x for x in effects if x != e))
+        except RuntimeError as exc:  # ConvergenceError too
+            log.warning("%s beside %s: not measured (%s)", e, effects, exc)
+            out[e] = float("nan")
+    return out
 
 
 def make_case(name: str, kind: str, effects: list, rng, *, noise_kinds=None,

@@ -55,6 +55,7 @@ def test_pairs_are_also_scored_where_their_tests_separate_both_effects():
                                                                   "a+b"),
              "p3": pair({"a": 2.0, "b": 5.0}, "a"), "p4": pair(None, "a+b")}
     assert [separable(c[0]) for c in cases.values()] == [False, True, True, None]
+    assert separable(pair({"a": float("nan"), "b": 5.0}, "a")[0]) is None  # not measured
     s = score({k: v[0] for k, v in cases.items()}, {k: v[1] for k, v in cases.items()})
     assert s["pair"] == {"cases": 4, "correct": 2, "within_ambiguity": 2, "separable": 2,
                          "separable_correct": 1, "measured": 3}
