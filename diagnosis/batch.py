@@ -20,10 +20,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 from mpi4py import MPI
 
 from brain_fe.io import write_json_atomic, write_text_atomic
 from brain_fe.parallel import Progress, SharedCounter, as_progress, dynamic_items, gather_all
+from brain_fe.vocabulary import COMPRESSION_TENSION, CONTROL, LOADING, TIME
 from recordings.observations import observations
 from recordings.tables import read_recordings, read_specimens
 from simulators.fe import FESimulator
@@ -123,8 +125,12 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
     write_json_atomic(out / "diagnosis.json", {n: _digest(r) for n, r in results.items()},
                       indent=1)
     groups = groups_of(specs, names)
+    regions = dict(zip(specs["specimen"].astype(str), specs["region"].astype(str),
+                       strict=True))
+    signatures = signatures_markdown(results, groups, regions, protocol_facts(rec))
     write_text_atomic(out / "summary.md", summary_markdown(results) + "\n" + groups_markdown(
-        results, groups) + "\n![across specimens](summary.png)\n")
+        results, groups) + ("\n" + signatures if signatures else "")
+        + "\n![across specimens](summary.png)\n")
     from .figures import across_specimens
 
     across_specimens(results, groups, out / "summary.png")
@@ -180,6 +186,103 @@ def groups_markdown(results: dict, groups: dict) -> str:
             params_lines.append(f"| {g} | {k} | {len(v)} | {np.median(v):.4g} | "
                                 f"{v.min():.4g} | {v.max():.4g} |")
     return "\n".join(lines + params_lines) + "\n"
+
+
+RATE_STEP = 1.5  # groups of one material whose loading rates differ by this factor or more
+
+
+def protocol_facts(rec: pd.DataFrame) -> dict:
+    """Per specimen, from its recordings: the median loading rate of its ramps [1/s]
+    (strain, or amount of shear, per second) and its largest number of cycles."""
+    out = {}
+    for name, g in rec.groupby("specimen", sort=False):
+        rates = []
+        for (test, _, _), r in g[g["branch"] == LOADING].groupby(
+                ["test", "amplitude", "cycle"], sort=False):
+            x = r[CONTROL[test]].to_numpy(float)
+            x = np.abs(x - 1.0) if test == COMPRESSION_TENSION else np.abs(x)
+            t = r[TIME].to_numpy(float)
+            ok = np.isfinite(x) & np.isfinite(t)
+            if ok.sum() > 1 and np.ptp(t[ok]) > 0:
+                rates.append(np.ptp(x[ok]) / np.ptp(t[ok]))
+        out[str(name)] = {"rate_per_s": float(np.median(rates)) if rates else float("nan"),
+                          "cycles": int(g["cycle"].max()),
+                          "tests": "+".join(sorted(g["test"].astype(str).unique()))}
+    return out
+
+
+def _unscored(r: dict, effect: str) -> bool:
+    rounds = r.get("rounds") or [{}]
+    return any(t.get("effect") == effect and t.get("score_failed")
+               for t in rounds[0].get("table", []))
+
+
+def _range(v: list, fmt: str = ".3g") -> str:
+    return (f"{np.median(v):{fmt}} ({min(v):{fmt}}-{max(v):{fmt}})" if len(v) > 1
+            else f"{v[0]:{fmt}}") if v else "-"
+
+
+def signatures_markdown(results: dict, groups: dict, regions: dict, facts: dict) -> str:
+    """What the diagnoses make of the two signatures a rheometer series shows: rate
+    dependence across groups of one material tested with the same tests and cycles at
+    different loading rates (is the
+    viscoelastic candidate named at each speed, with which relaxation time; or could it
+    not be tested), and the first cycle against the next in tests of several cycles (is
+    Mullins softening named, tried, or not testable).  ``regions``: specimen -> material;
+    ``facts``: :func:`protocol_facts`.  Empty when the batch has neither."""
+    ok = {n: r for n, r in results.items() if "error" not in r}
+    lines: list[str] = []
+    by_region: dict = {}
+    for n in ok:
+        f = facts.get(n, {})
+        key = (regions.get(n), f.get("tests"), f.get("cycles"))
+        by_region.setdefault(key, {}).setdefault(groups.get(n), []).append(n)
+    for (region, tests, cycles), gs in by_region.items():
+        rate = {g: float(np.nanmedian([facts[n]["rate_per_s"] for n in ns if n in facts]
+                                      or [np.nan])) for g, ns in gs.items()}
+        rate = {g: v for g, v in rate.items() if np.isfinite(v)}
+        if len(rate) < 2 or max(rate.values()) < RATE_STEP * min(rate.values()):
+            continue
+        lines += ["", f"## Rate dependence: {region} ({tests}, {cycles} cycle"
+                  f"{'s' if cycles != 1 else ''})", "",
+                  "| group | loading rate [1/s] | n | viscoelastic named | tau [s] | beta | "
+                  "not testable (model not solved) |", "|---|---|---|---|---|---|---|"]
+        said = []
+        for g in sorted(rate, key=rate.get, reverse=True):
+            rs = [ok[n] for n in gs[g]]
+            named = [r for r in rs if "viscoelastic" in r.get("effects", [])]
+            taus = [10 ** r["refit_parameters"]["log10_tau_0"] for r in named]
+            betas = [r["refit_parameters"]["beta_0"] for r in named]
+            blind = sum(_unscored(r, "viscoelastic") for r in rs)
+            lines.append(f"| {g} | {rate[g]:.3g} | {len(rs)} | {len(named)} | {_range(taus)} "
+                         f"| {_range(betas)} | {blind} |")
+            if 2 * len(named) > len(rs):
+                said.append(f"{g}: viscoelastic in {len(named)} of {len(rs)}, tau "
+                            f"{_range(taus)} s")
+            elif 2 * blind >= len(rs):
+                said.append(f"{g}: cannot tell (the viscoelastic model could not be solved "
+                            f"along the recorded path in {blind} of {len(rs)})")
+            else:
+                said.append(f"{g}: no rate effect named ({len(named)} of {len(rs)})")
+        lines += ["", "What the diagnoses make of it: " + "; ".join(said) + "."]
+    multi = [n for n in ok if facts.get(n, {}).get("cycles", 1) >= 2]
+    if multi:
+        lines += ["", "## First cycle against the next (tests of two or more cycles)", "",
+                  "| group | n | Mullins named | with viscoelastic | softening d | "
+                  "Mullins not testable | viscoelastic named |", "|---|---|---|---|---|---|---|"]
+        for g in dict.fromkeys(groups.get(n) for n in multi):
+            rs = [ok[n] for n in multi if groups.get(n) == g]
+            mul = [r for r in rs if "mullins" in r.get("effects", [])]
+            lines.append(
+                f"| {g} | {len(rs)} | {len(mul)} | "
+                f"{sum('viscoelastic' in r['effects'] for r in mul)} | "
+                f"{_range([r['refit_parameters']['softening'] for r in mul], '.2f')} | "
+                f"{sum(_unscored(r, 'mullins') for r in rs)} | "
+                f"{sum('viscoelastic' in r.get('effects', []) for r in rs)} |")
+        lines += ["", "A cycle-to-cycle difference that Mullins softening does not take (a "
+                  "set, damage, adhesion) stays in the final model's misfit: see what remains "
+                  "per specimen above."]
+    return "\n".join(lines).lstrip("\n") + ("\n" if lines else "")
 
 
 def _verdict(r: dict) -> str:

@@ -177,3 +177,42 @@ def test_the_model_s_lift_off_is_set_beside_the_recorded_one():
     assert note == ("ct: the final model lift-off in cycle 1 at 0.680, re-contact in cycle 2 "
                     "at 0.780; recorded lift-off in cycle 1 at 0.700, re-contact in cycle 2 "
                     "at 0.750 (stretch)")
+
+
+def test_the_summary_says_what_the_diagnoses_make_of_rate_and_cycles():
+    """Two groups of one material, the same two-cycle test at loading rates 0.1 and 0.025
+    per second (stretch 1 -> 0.9 in 1 s and in 4 s): the fast one named viscoelastic (tau
+    10^-1 s) and Mullins, the slow one with both candidates unsolvable along its path.
+    The rates are read from the recordings; the summary names what each speed shows."""
+    import pandas as pd
+
+    from diagnosis.batch import protocol_facts, signatures_markdown
+
+    rows = []
+    for name, ramp_s in (("A", 1.0), ("B", 4.0)):
+        for cycle in (1, 2):
+            t0 = (cycle - 1) * 2 * ramp_s
+            for k in range(5):
+                rows.append({"specimen": name, "test": "compression_tension",
+                             "amplitude": 0.1, "cycle": cycle, "branch": "loading",
+                             "time_s": t0 + k * ramp_s / 4, "stretch": 1.0 - 0.1 * k / 4})
+    facts = protocol_facts(pd.DataFrame(rows))
+    assert facts["A"]["rate_per_s"] == pytest.approx(0.1)
+    assert facts["B"]["rate_per_s"] == pytest.approx(0.025)
+    assert facts["A"]["cycles"] == 2
+    blind = {"rounds": [{"table": [{"effect": "viscoelastic", "score_failed": True},
+                                   {"effect": "mullins", "score_failed": True}]}]}
+    results = {"A": {"effects": ["viscoelastic", "mullins"], "rounds": [{"table": []}],
+                     "refit_parameters": {"log10_tau_0": -1.0, "beta_0": 2.0,
+                                          "softening": 0.3}},
+               "B": {"effects": [], "refit_parameters": {}, **blind}}
+    text = signatures_markdown(results, {"A": "m/fast", "B": "m/slow"},
+                               {"A": "m", "B": "m"}, facts)
+    assert "m/fast: viscoelastic in 1 of 1, tau 0.1 s" in text
+    assert "m/slow: cannot tell (the viscoelastic model could not be solved along the " \
+           "recorded path in 1 of 1)" in text
+    assert "| m/fast | 1 | 1 | 1 | 0.30 | 0 | 1 |" in text
+    assert "| m/slow | 1 | 0 | 0 | - | 1 | 0 |" in text
+    same_rate = {n: dict(f, rate_per_s=0.1) for n, f in facts.items()}
+    assert "Rate dependence" not in signatures_markdown(
+        results, {"A": "m/fast", "B": "m/slow"}, {"A": "m", "B": "m"}, same_rate)
