@@ -3,9 +3,10 @@
 For every ``pair`` case of a ``brainmech benchmark-diagnosis --world open`` run, the
 generator's rule of :func:`diagnosis.open_world.visible_beside` applied to its stored
 truth and recorded times: the misfit (noise SDs, RMS) that the noiseless recordings leave
-to the best model with the *other* effect, on the working mesh.  Runs made since that rule
-draw again a pair with an effect below ``VISIBLE`` beside its partner; this script says
-what it does to the pairs of an earlier run.
+to the best model with the *other* effect, on the working mesh.  Runs made since write it
+into every pair's label (the pair is kept); this script measures it for the pairs of an
+earlier run.  ``not_separable``: the pairs with an effect below ``VISIBLE`` beside its
+partner (:func:`diagnosis.open_benchmark.separable`; not measured: neither list).
 
     OPENBLAS_NUM_THREADS=1 mpirun -n 2 .venv/bin/python benchmarks/visible_beside.py \\
         --benchmark open/ --out beside.json
@@ -24,6 +25,7 @@ from mpi4py import MPI
 from brain_fe.io import write_json_atomic
 from brain_fe.parallel import SharedCounter, dynamic_items
 from brain_fe.parameters import Param
+from diagnosis.open_benchmark import separable
 from diagnosis.open_world import VISIBLE, Specimen, Truth, visible_beside
 
 OUTSIDE_FIELDS = {"stiffness_drift": "drift", "set_stretch": "set_stretch",
@@ -31,7 +33,7 @@ OUTSIDE_FIELDS = {"stiffness_drift": "drift", "set_stretch": "set_stretch",
 
 
 def stored(src: Path, name: str):
-    """(effects, specimen, truth, recorded times per protocol, noise SD per channel)."""
+    """(label, specimen, truth, recorded times per protocol) of a stored case."""
     lab = json.loads((src / "labels" / f"{name}.json").read_text())
     s = dict(lab["specimen"])
     s["torsion_amplitudes"] = tuple(s["torsion_amplitudes"])
@@ -60,16 +62,17 @@ def main() -> None:
         lab, spec, truth, times = stored(src, name)
         beside = visible_beside(lab["effects"], spec, truth, times, lab["noise_sd"], models)
         mine[name] = {"effects": lab["effects"], "alone": lab["base_misfit_over_noise"],
-                      "beside": beside,
-                      "visible": bool(min(beside.values()) >= VISIBLE)}
+                      "beside": beside, "separable": separable(
+                          {"misfit_beside_the_other_over_noise": beside})}
         logging.getLogger("beside").warning("%s %s: alone %s, beside the other %s", name,
                                             lab["effects"], mine[name]["alone"], beside)
     counter.free()
     every = {k: v for part in comm.allgather(mine) for k, v in part.items()}
     if comm.rank == 0:
         write_json_atomic(Path(a.out), {"visible": VISIBLE, "cases": every,
-                                        "redrawn": sorted(n for n, r in every.items()
-                                                          if not r["visible"])},
+                                        "not_separable": sorted(
+                                            n for n, r in every.items()
+                                            if r["separable"] is False)},
                           indent=1, default=str)
 
 

@@ -125,9 +125,11 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
     write_json_atomic(out / "diagnosis.json", {n: _digest(r) for n, r in results.items()},
                       indent=1)
     groups = groups_of(specs, names)
-    regions = dict(zip(specs["specimen"].astype(str), specs["region"].astype(str),
-                       strict=True))
-    signatures = signatures_markdown(results, groups, regions, protocol_facts(rec))
+    rows = specs.set_index("specimen")
+    regions = {n: str(rows.loc[n, "region"]) for n in names}
+    # by material/protocol, also where groups_of merged one-specimen groups into the region
+    signatures = signatures_markdown(results, groups_of(specs, names, merge=False), regions,
+                                     protocol_facts(rec))
     write_text_atomic(out / "summary.md", summary_markdown(results) + "\n" + groups_markdown(
         results, groups) + ("\n" + signatures if signatures else "")
         + "\n![across specimens](summary.png)\n")
@@ -137,13 +139,13 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
     return results
 
 
-def groups_of(specs, names: list) -> dict:
+def groups_of(specs, names: list, merge: bool = True) -> dict:
     """Specimen -> group: ``region/brain`` of the specimens table (for imported rheometer
-    exports: material/protocol, e.g. ``fungi_steak/2s``), or the region alone when every
-    such group would hold one specimen."""
+    exports: material/protocol, e.g. ``fungi_steak/2s``), or (``merge``) the region alone
+    when every such group would hold one specimen."""
     rows = specs.set_index("specimen")
     fine = {n: f"{rows.loc[n, 'region']}/{rows.loc[n, 'brain']}" for n in names}
-    if len(set(fine.values())) == len(names) and len(names) > 1:
+    if merge and len(set(fine.values())) == len(names) and len(names) > 1:
         return {n: str(rows.loc[n, "region"]) for n in names}
     return fine
 
@@ -192,29 +194,40 @@ RATE_STEP = 1.5  # groups of one material whose loading rates differ by this fac
 
 
 def protocol_facts(rec: pd.DataFrame) -> dict:
-    """Per specimen, from its recordings: the median loading rate of its ramps [1/s]
-    (strain, or amount of shear, per second) and its largest number of cycles."""
+    """Per specimen, from its recordings: the median loading rate [1/s] of the ramps of its
+    first test (sorted by name; strain, or amount of shear, per second), each ramp a run of
+    consecutive loading rows (a compression and a tension ramp of one cycle apart), its
+    largest number of cycles and its tests."""
     out = {}
     for name, g in rec.groupby("specimen", sort=False):
+        tests = sorted(g["test"].astype(str).unique())
         rates = []
-        for (test, _, _), r in g[g["branch"] == LOADING].groupby(
-                ["test", "amplitude", "cycle"], sort=False):
-            x = r[CONTROL[test]].to_numpy(float)
-            x = np.abs(x - 1.0) if test == COMPRESSION_TENSION else np.abs(x)
-            t = r[TIME].to_numpy(float)
-            ok = np.isfinite(x) & np.isfinite(t)
-            if ok.sum() > 1 and np.ptp(t[ok]) > 0:
-                rates.append(np.ptp(x[ok]) / np.ptp(t[ok]))
-        out[str(name)] = {"rate_per_s": float(np.median(rates)) if rates else float("nan"),
-                          "cycles": int(g["cycle"].max()),
-                          "tests": "+".join(sorted(g["test"].astype(str).unique()))}
+        for _, c in g[g["test"] == tests[0]].groupby("amplitude", sort=False):
+            run = (c["branch"].ne(c["branch"].shift()) | c["cycle"].ne(c["cycle"].shift())
+                   ).cumsum()
+            for _, r in c[c["branch"] == LOADING].groupby(run[c["branch"] == LOADING]):
+                x = r[CONTROL[tests[0]]].to_numpy(float)
+                x = np.abs(x - 1.0) if tests[0] == COMPRESSION_TENSION else np.abs(x)
+                t = r[TIME].to_numpy(float)
+                ok = np.isfinite(x) & np.isfinite(t)
+                if ok.sum() > 1 and np.ptp(t[ok]) > 0:
+                    rates.append(np.ptp(x[ok]) / np.ptp(t[ok]))
+        out[name] = {"rate_per_s": float(np.median(rates)) if rates else float("nan"),
+                     "cycles": int(g["cycle"].max()), "tests": "+".join(tests)}
     return out
 
 
-def _unscored(r: dict, effect: str) -> bool:
-    rounds = r.get("rounds") or [{}]
-    return any(t.get("effect") == effect and t.get("score_failed")
-               for t in rounds[0].get("table", []))
+def _tested(r: dict, effect: str) -> str:
+    """How a diagnosis met a candidate: ``named``, ``untestable`` (its model could not be
+    solved for the score or the fit), ``absent`` (not a candidate) or ``tested``."""
+    if effect in r.get("effects", []):
+        return "named"
+    rows = [t for t in ((r.get("rounds") or [{}])[0].get("table") or [])
+            if t.get("effect") == effect]
+    if not rows:
+        return "absent"
+    return "untestable" if rows[0].get("score_failed") or rows[0].get("fit_failed") \
+        else "tested"
 
 
 def _range(v: list, fmt: str = ".3g") -> str:
@@ -238,9 +251,12 @@ def signatures_markdown(results: dict, groups: dict, regions: dict, facts: dict)
         key = (regions.get(n), f.get("tests"), f.get("cycles"))
         by_region.setdefault(key, {}).setdefault(groups.get(n), []).append(n)
     for (region, tests, cycles), gs in by_region.items():
-        rate = {g: float(np.nanmedian([facts[n]["rate_per_s"] for n in ns if n in facts]
-                                      or [np.nan])) for g, ns in gs.items()}
-        rate = {g: v for g, v in rate.items() if np.isfinite(v)}
+        rate = {}
+        for g, ns in gs.items():
+            v = [facts[n]["rate_per_s"] for n in ns if n in facts]
+            v = [x for x in v if np.isfinite(x)]
+            if v:
+                rate[g] = float(np.median(v))
         if len(rate) < 2 or max(rate.values()) < RATE_STEP * min(rate.values()):
             continue
         lines += ["", f"## Rate dependence: {region} ({tests}, {cycles} cycle"
@@ -253,13 +269,17 @@ def signatures_markdown(results: dict, groups: dict, regions: dict, facts: dict)
             named = [r for r in rs if "viscoelastic" in r.get("effects", [])]
             taus = [10 ** r["refit_parameters"]["log10_tau_0"] for r in named]
             betas = [r["refit_parameters"]["beta_0"] for r in named]
-            blind = sum(_unscored(r, "viscoelastic") for r in rs)
+            how = [_tested(r, "viscoelastic") for r in rs]
+            blind, absent = how.count("untestable"), how.count("absent")
             lines.append(f"| {g} | {rate[g]:.3g} | {len(rs)} | {len(named)} | {_range(taus)} "
                          f"| {_range(betas)} | {blind} |")
             if 2 * len(named) > len(rs):
                 said.append(f"{g}: viscoelastic in {len(named)} of {len(rs)}, tau "
                             f"{_range(taus)} s")
-            elif 2 * blind >= len(rs):
+            elif 2 * absent >= len(rs):
+                said.append(f"{g}: not tested (viscoelastic not a candidate in {absent} of "
+                            f"{len(rs)})")
+            elif 2 * (blind + absent) >= len(rs):
                 said.append(f"{g}: cannot tell (the viscoelastic model could not be solved "
                             f"along the recorded path in {blind} of {len(rs)})")
             else:
@@ -277,7 +297,7 @@ def signatures_markdown(results: dict, groups: dict, regions: dict, facts: dict)
                 f"| {g} | {len(rs)} | {len(mul)} | "
                 f"{sum('viscoelastic' in r['effects'] for r in mul)} | "
                 f"{_range([r['refit_parameters']['softening'] for r in mul], '.2f')} | "
-                f"{sum(_unscored(r, 'mullins') for r in rs)} | "
+                f"{sum(_tested(r, 'mullins') == 'untestable' for r in rs)} | "
                 f"{sum('viscoelastic' in r.get('effects', []) for r in rs)} |")
         lines += ["", "A cycle-to-cycle difference that Mullins softening does not take (a "
                   "set, damage, adhesion) stays in the final model's misfit: see what remains "

@@ -254,7 +254,8 @@ def summary_markdown(s: dict) -> str:
              f"- pairs, exact set: {_pct(p['correct'], p['cases'])} (within a reported "
              f"ambiguity: {_pct(p['within_ambiguity'], p['cases'])})"
              + (f"; of the pairs whose tests separate both effects (each >= {VISIBLE} noise "
-                f"SD beside the other): {_pct(p['separable_correct'], p['separable'])}"
+                f"SD beside the other; {p['measured']} of {p['cases']} measured): "
+                f"{_pct(p['separable_correct'], p['separable'])}"
                 if p.get("measured") else ""),
              f"- outside the library, `unexplained`: {_pct(o['correct'], o['cases'])}; "
              f"not `explained`: {_pct(o['not_explained'], o['cases'])}",

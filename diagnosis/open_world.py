@@ -448,7 +448,7 @@ def visible_beside(effects: list, spec, truth: Truth, times, sd, models) -> dict
         try:
             out[e] = misfit_left(spec, truth, times, sd, models,
                                  beside=tuple(x for x in effects if x != e))
-        except RuntimeError as exc:  # ConvergenceError too
+        except (RuntimeError, ValueError) as exc:  # not solved, or not at its start
             log.warning("%s beside %s: not measured (%s)", e, effects, exc)
             out[e] = float("nan")
     return out

@@ -196,7 +196,14 @@ def test_the_summary_says_what_the_diagnoses_make_of_rate_and_cycles():
                 rows.append({"specimen": name, "test": "compression_tension",
                              "amplitude": 0.1, "cycle": cycle, "branch": "loading",
                              "time_s": t0 + k * ramp_s / 4, "stretch": 1.0 - 0.1 * k / 4})
+    for branch, x0, x1, t0 in (("loading", 1.0, 0.9, 0.0), ("unloading", 0.9, 1.0, 1.0),
+                               ("loading", 1.0, 1.1, 2.0), ("unloading", 1.1, 1.0, 3.0)):
+        for k in range(5):  # C: one compression-tension cycle, each ramp 0.1 in 1 s
+            rows.append({"specimen": "C", "test": "compression_tension", "amplitude": 0.1,
+                         "cycle": 1, "branch": branch, "time_s": t0 + k / 4,
+                         "stretch": x0 + (x1 - x0) * k / 4})
     facts = protocol_facts(pd.DataFrame(rows))
+    assert facts["C"]["rate_per_s"] == pytest.approx(0.1)  # ramp by ramp, not per cycle
     assert facts["A"]["rate_per_s"] == pytest.approx(0.1)
     assert facts["B"]["rate_per_s"] == pytest.approx(0.025)
     assert facts["A"]["cycles"] == 2
@@ -213,6 +220,10 @@ def test_the_summary_says_what_the_diagnoses_make_of_rate_and_cycles():
            "recorded path in 1 of 1)" in text
     assert "| m/fast | 1 | 1 | 1 | 0.30 | 0 | 1 |" in text
     assert "| m/slow | 1 | 0 | 0 | - | 1 | 0 |" in text
+    results["B"] = {"effects": [], "refit_parameters": {}, "rounds": [{"table": []}]}
+    assert "m/slow: not tested (viscoelastic not a candidate in 1 of 1)" in \
+        signatures_markdown(results, {"A": "m/fast", "B": "m/slow"}, {"A": "m", "B": "m"},
+                            facts)
     same_rate = {n: dict(f, rate_per_s=0.1) for n, f in facts.items()}
     assert "Rate dependence" not in signatures_markdown(
         results, {"A": "m/fast", "B": "m/slow"}, {"A": "m", "B": "m"}, same_rate)
