@@ -27,6 +27,7 @@ from brain_fe.io import write_json_atomic, write_text_atomic
 from brain_fe.parallel import Progress, SharedCounter, as_progress, dynamic_items, gather_all
 from brain_fe.vocabulary import COMPRESSION_TENSION, CONTROL, LOADING, TIME
 from recordings.observations import observations
+from recordings.rheometer_segments import ramp_ids
 from recordings.tables import read_recordings, read_specimens
 from simulators.fe import FESimulator
 
@@ -203,9 +204,9 @@ def protocol_facts(rec: pd.DataFrame) -> dict:
         tests = sorted(g["test"].astype(str).unique())
         rates = []
         for _, c in g[g["test"] == tests[0]].groupby("amplitude", sort=False):
-            run = (c["branch"].ne(c["branch"].shift()) | c["cycle"].ne(c["cycle"].shift())
-                   ).cumsum()
-            for _, r in c[c["branch"] == LOADING].groupby(run[c["branch"] == LOADING]):
+            ramp = ramp_ids(c["cycle"].to_numpy(), c["branch"].to_numpy(object))
+            loading = (c["branch"] == LOADING).to_numpy()
+            for _, r in c[loading].groupby(ramp[loading]):
                 x = r[CONTROL[tests[0]]].to_numpy(float)
                 x = np.abs(x - 1.0) if tests[0] == COMPRESSION_TENSION else np.abs(x)
                 t = r[TIME].to_numpy(float)
