@@ -49,13 +49,14 @@ from .effects import BASE_NAMES, check_effects, library, separating_test
 from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
 from .noise import NoiseModel, estimate_noise, fit_noise
 from .remaining import remaining, systematic_basis
+from .screen import detection_limits
 from .selection import Context, Union, compare, compatible, run_round
 
 log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-9"
+ENGINE_VERSION = "2026.11-open-world-10"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
@@ -86,6 +87,9 @@ class Diagnosis:
     tried: list = field(default_factory=list)  # effects fitted that explain too little
     cannot_tell: str = ""  # why a `none`/`explained` may hide a misfit taken for wander
     timings: dict = field(default_factory=dict)  # wall time of each stage [s]
+    # how large the candidates not named would have to be to show beside the final model
+    detection_limits: dict = field(default_factory=dict)  # (diagnosis.screen.detection_limits)
+    masked: list = field(default_factory=list)  # candidates no allowed value of would show
 
     @property
     def verdict(self) -> str:
@@ -148,6 +152,8 @@ class Diagnosis:
             "rounds": [{"from": "+".join(r.current) or "base", "added": r.added,
                         "dropped": r.dropped, "table": r.table} for r in self.rounds],
             "ambiguous": self.ambiguous,
+            "detection_limits": self.detection_limits,
+            "masked": self.masked,
             "notes": self.notes,
             "rms_before": self._rms_total(self.base),
             "rms_after": self._rms_total(w),
@@ -258,6 +264,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                      f"{100 * rms_final / rms_base:.0f} % of the base RMS misfit; an effect "
                      "is named only when it at least halves it")
     doubt = _cannot_tell(status, rem, final_noise, noise)
+    limits, masked = _limits(ctx, comm, current, chosen, J, final_noise, effects)
     if rem["reproducible"]["repeats"] == "none":
         notes.append("no repeated ramp (one pass of each): wander and a smooth misfit cannot "
                      "be told apart by repetition; only the located test applies")
@@ -276,7 +283,31 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     timings["noise_locate_decide"] = round(time.perf_counter() - t_end, 2)
     return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
                      ambiguous, disc, time.perf_counter() - t0, obs, notes, tried, doubt,
-                     timings)
+                     timings, limits, masked)
+
+
+def _limits(ctx: Context, comm, current: Fit, chosen: list, J: np.ndarray,
+            nm: NoiseModel, effects) -> tuple[dict, list]:
+    """The detection limits of the candidates not named beside the final model
+    (:func:`diagnosis.screen.detection_limits`, under the final noise model and the bar
+    of the next round), and those of them masked by the named effects: no allowed value
+    would show."""
+    lib = ctx.lib
+    cands = {e: lib[e] for e in (effects or lib) if e not in chosen}
+    m = max(len(cands), 1)
+    try:
+        with _sharing(ctx.sim, comm):
+            limits = detection_limits(ctx.sim, current, _all_names(lib, chosen), J, cands,
+                                      nm.whiten_jacobian,
+                                      lambda eff: ctx.needed(len(eff.names), m))
+    except (RuntimeError, ValueError) as exc:  # a note is not worth a failed diagnosis
+        log.warning("detection limits at the final model: %s", exc)
+        return {}, []
+    masked = [{"effect": e, "beside": sorted(chosen), "separating_test": " / ".join(
+        dict.fromkeys(separating_test(e, c) for c in chosen))}
+        for e, d in limits.items()
+        if chosen and not any(v["within_bounds"] for v in d.values())]
+    return limits, masked
 
 
 def _cannot_tell(status: str, rem: dict, nm: NoiseModel, stated: dict | None) -> str:

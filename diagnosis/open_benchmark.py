@@ -166,13 +166,27 @@ def _correct(label: dict, res: dict) -> bool:
 
 
 def _named_within_ambiguity(label: dict, res: dict) -> bool:
-    """The verdict is right up to a pair the diagnosis itself reported it cannot tell
-    apart with these tests."""
+    """The verdict is right up to what the diagnosis itself reported it cannot see: a pair
+    it cannot tell apart with these tests, or effects it left out whose true size is within
+    its stated detection limit beside the named ones (:func:`_below_stated_limit`)."""
     if _correct(label, res):
         return True
     swaps = [set(a["effects"]) for a in res.get("ambiguous", [])]
     want, got = set(label["effects"]), set(res.get("effects", []))
-    return len(want ^ got) == 2 and (want ^ got) in swaps
+    if len(want ^ got) == 2 and (want ^ got) in swaps:
+        return True
+    return label["kind"] != "outside" and bool(got) and got < want and all(
+        _below_stated_limit(label, res, e) for e in want - got)
+
+
+def _below_stated_limit(label: dict, res: dict, effect: str) -> bool:
+    """The true size of ``effect`` lies within the detection limit the diagnosis stated for
+    it beside its named effects (``detection_limits``: every parameter's true value closer
+    to its neutral value than the step that would show)."""
+    limits = (res.get("detection_limits") or {}).get(effect)
+    truth = label.get("truth", {})
+    return bool(limits) and all(
+        n in truth and abs(truth[n] - v["from"]) < v["step"] for n, v in limits.items())
 
 
 def separable(label: dict) -> bool | None:
@@ -250,9 +264,9 @@ def summary_markdown(s: dict) -> str:
              f"- cases: {s['cases']}",
              f"- controls, no false alarm: {_pct(c['cases'] - c['false_alarms'], c['cases'])}",
              f"- single effects named: {_pct(si['correct'], si['cases'])} (within a reported "
-             f"ambiguity: {_pct(si['within_ambiguity'], si['cases'])})",
+             f"ambiguity or detection limit: {_pct(si['within_ambiguity'], si['cases'])})",
              f"- pairs, exact set: {_pct(p['correct'], p['cases'])} (within a reported "
-             f"ambiguity: {_pct(p['within_ambiguity'], p['cases'])})"
+             f"ambiguity or detection limit: {_pct(p['within_ambiguity'], p['cases'])})"
              + (f"; of the pairs whose tests separate both effects (each >= {VISIBLE} noise "
                 f"SD beside the other; {p['measured']} of {p['cases']} measured): "
                 f"{_pct(p['separable_correct'], p['separable'])}"

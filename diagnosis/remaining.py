@@ -13,8 +13,8 @@ it (white noise, wander correlated over at most half a ramp, drift from the tare
   Significant when its likelihood-ratio statistic has p < ``alpha`` and beats BIC by the
   margin.  Data without repetitions (loading only, one pass) cannot be tested this way,
   and the report says so;
-* **trend**: the stiffness changing with time within a test of several cycles (the
-  prediction scaled by time, one term per curve), which no library effect does.
+* **trend**: the stiffness changing with time within the tests of several cycles (the
+  prediction scaled by time at one rate for every test), which no library effect does.
 
 The noise model is estimated by restricted ML with these columns and the model's own
 parameters projected out (:func:`systematic_basis`, :func:`diagnosis.noise.fit_noise`), so
@@ -84,21 +84,23 @@ def reproducible_basis(obs: pd.DataFrame) -> tuple[np.ndarray, str]:
 
 
 def trend_basis(obs: pd.DataFrame, prediction: np.ndarray) -> np.ndarray:
-    """One column per curve: the model's prediction times time (centred, in units of the
-    curve's duration): the response of a specimen whose stiffness drifts during the test
-    (tissue degrading, drying, warming up).  No effect of the library changes with time
-    alone, so a trend the final model leaves is a misfit, whatever its cause."""
+    """One column: the model's prediction times time (centred on each curve's mid-time, in
+    units of the longest curve's duration), over every curve of several cycles: the
+    response of a specimen whose stiffness drifts during the session (tissue degrading,
+    drying, warming up) at one rate, the same in every test.  No effect of the library
+    changes with time alone, so a trend the final model leaves is a misfit, whatever its
+    cause.  One rate, not one per curve: a drift of the tissue is the tissue's, and a
+    single column needs the least evidence to be seen (open-world-10)."""
     t = obs["time_s"].to_numpy(float) if "time_s" in obs else np.full(len(obs), np.nan)
-    cols = []
+    col, span = np.zeros(len(obs)), 0.0
     for _, g in obs.groupby("curve", sort=False):
         rows = g.index.to_numpy()
         tt = t[rows]
         if g["cycle"].nunique() < 2 or not np.isfinite(tt).all() or np.ptp(tt) <= 0:
             continue
-        col = np.zeros(len(obs))
-        col[rows] = prediction[rows] * (tt - tt.mean()) / np.ptp(tt)
-        cols.append(col)
-    return np.column_stack(cols) if cols else np.zeros((len(obs), 0))
+        col[rows] = prediction[rows] * (tt - 0.5 * (tt.min() + tt.max()))
+        span = max(span, float(np.ptp(tt)))
+    return (col / span)[:, None] if span > 0 else np.zeros((len(obs), 0))
 
 
 def systematic_basis(obs: pd.DataFrame, prediction: np.ndarray | None = None) -> np.ndarray:

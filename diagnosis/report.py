@@ -72,7 +72,8 @@ def _write(d, out: Path, title: str) -> dict:
               f"p = {rep['p_value']:.2g}, {verdict}.", ""]
     tr = rem.get("trend")
     if tr and tr["dof"]:
-        lines += [f"Stiffness trending with time within a test: chi2 gain {tr['gain']:.1f} "
+        lines += [f"Stiffness trending with time (one rate in every test of several cycles): "
+                  f"chi2 gain {tr['gain']:.1f} "
                   f"on {tr['dof']} parameters, p = {tr['p_value']:.2g}, "
                   f"{'significant' if tr['significant'] else 'not significant'}.", ""]
     lines += _segments(rem["located"])
@@ -106,6 +107,7 @@ def _write(d, out: Path, title: str) -> dict:
         lines += [f"**Cannot tell apart** {a['effects'][0]} and {a['effects'][1]} "
                   f"(dBIC {a['delta_bic']:.1f}); would separate them: {a['separating_test']}.",
                   ""]
+    lines += _limit_lines(res)
     lines += ["## Before and after", "", "![before/after](before_after.png)", "",
               "| parameter | base fit | refit | bias of the base fit |", "|---|---|---|---|"]
     for n, b in res["base_bias"].items():
@@ -123,6 +125,26 @@ def _write(d, out: Path, title: str) -> dict:
     lines += ["", f"Elapsed: {res['elapsed_s']:.0f} s{_where_the_time_went(res)}."]
     write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
     return res
+
+
+def _limit_lines(res: dict) -> list[str]:
+    """The detection limits of the candidates not named, and those the named effects mask."""
+    lines = []
+    for m in res.get("masked", []):
+        lines += [f"**Cannot tell whether {m['effect']} is also present**: beside "
+                  f"{' + '.join(m['beside'])}, no allowed value of it would show in these "
+                  f"tests; would tell: {m['separating_test']}.", ""]
+    limits = res.get("detection_limits") or {}
+    if limits:
+        lines += ["How large the candidates not named would have to be to show beside the final "
+                  "model (linearised at their neutral value; beyond the bounds: never):", "",
+                  "| effect | parameter | from | would show at |", "|---|---|---|---|"]
+        for e, d in limits.items():
+            for n, v in d.items():
+                at = ", ".join(f"{x:.4g}" for x in v["would_show_at"]) or "no allowed value"
+                lines.append(f"| {e} | {n} | {v['from']:.4g} | {at} |")
+        lines.append("")
+    return lines
 
 
 def _where_the_time_went(res: dict) -> str:

@@ -165,3 +165,48 @@ def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dic
         start[name] = values[name] + float(dk)  # the fit clips it to the bounds
     return Score(effect.name, max(current_chi2 - predicted, 0.0), len(active) - nb, start,
                  point, seconds, tuple(held))
+
+
+# Candidates whose neutral point is finite and whose every parameter acts there (no
+# nuisance parameter), so that one Jacobian at the final fit says how large they would have
+# to be to show: compressibility (from the assumed nu0) and the test artefacts (from zero)
+LINEAR_AT_NEUTRAL = ("compressibility", "artefacts")
+
+
+def detection_limits(sim, current, current_names, J_current: np.ndarray, effects: dict,
+                     whiten, needed) -> dict:
+    """How large each candidate of ``effects`` (of :data:`LINEAR_AT_NEUTRAL`, not in the
+    ``current`` model) would have to be to earn its place beside the current model, one
+    parameter at a time, linearised at its neutral point: with the whitened Jacobians J_m
+    of the current model and j of the parameter, the smallest step that removes
+    ``needed(effect)`` of chi-square is sqrt(needed) / ||(I - P_{J_m}) j||.  What the
+    current parameters can mimic does not count: an effect the named ones mask has a large
+    limit, beyond its bounds when no allowed value would show.  ``whiten``: the noise
+    model's whitening of Jacobian columns.  Returns {effect: {parameter: {"from",
+    "step", "would_show_at", "within_bounds"}}}."""
+    cands = {e: eff for e, eff in effects.items()
+             if e in LINEAR_AT_NEUTRAL and not set(eff.names) & set(current_names)}
+    if not cands:
+        return {}
+    neutral = {n: (sim.nu0 if str(n) == "nu0" else 0.0) for eff in cands.values()
+               for n in eff.names}
+    names = [n for eff in cands.values() for n in eff.names]
+    pred = sim.predict({**current.values, **neutral}, names)
+    Jm = whiten(J_current)
+    Jc = whiten(pred.jacobian)
+    scale = np.where(np.linalg.norm(Jm, axis=0) > 0, np.linalg.norm(Jm, axis=0), 1.0)
+    Q, _ = np.linalg.qr(Jm / scale)
+    out: dict = {}
+    for e, eff in cands.items():
+        bar = math.sqrt(needed(eff))
+        for n in eff.names:
+            j = Jc[:, names.index(n)]
+            left = float(np.linalg.norm(j - Q @ (Q.T @ j)))
+            step = bar / left if left > 0 else math.inf
+            lo, hi = eff.bounds(n)
+            x0 = neutral[n]
+            show = [x for x in (x0 - step, x0 + step) if lo <= x <= hi]
+            out.setdefault(e, {})[str(n)] = {
+                "from": x0, "step": step, "would_show_at": show,
+                "within_bounds": bool(show)}
+    return out

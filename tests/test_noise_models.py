@@ -161,3 +161,44 @@ def test_wander_survives_the_projection(seed):
     assert cn.white == pytest.approx(1.0, rel=0.25)
     assert cn.corr == pytest.approx(1.5, rel=0.3)
     assert 2.0 < cn.corr_s < 8.0
+
+
+def _two_curves(per_ramp: int, cycles: int) -> tuple[pd.DataFrame, np.ndarray]:
+    """Two curves (compression/tension, torsion) of ``cycles`` cycles each, time from 0 in
+    each, with a model prediction that swings between -1 and 1 along every ramp."""
+    parts, preds = [], []
+    n = 2 * cycles * per_ramp
+    x = np.linspace(0.0, 1.0, per_ramp)
+    for curve in ("compression_tension", "torsion"):
+        o = _cycled_obs(np.zeros(n), per_ramp)
+        o["curve"] = curve
+        parts.append(o)
+        preds.append(np.tile(np.r_[np.sin(np.pi * x), np.sin(np.pi * x[::-1])], cycles))
+    return pd.concat(parts, ignore_index=True), np.concatenate(preds)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_one_rate_stiffness_trend(seed):
+    """A stiffness lost at one rate during both tests (residual -d p (t - t_mid) / T, p the
+    model's prediction) is one column of the trend test.  With d = 0.17 and white noise of
+    SD 0.1 on 480 points its chi-square is d^2 / 0.1^2 * sum p^2 ((t - t_mid) / T)^2 ~
+    2000 d^2 ~ 58 (<p^2> = 1/2, <((t - t_mid)/T)^2> = 1/12); the test's gain is that plus
+    chi-square(1) noise, within 30 %, and significant (the BIC bar is log 480 + 10 = 16.2);
+    without the drift, on the same noise, it is not."""
+    from diagnosis.remaining import remaining, trend_basis
+
+    rng = np.random.default_rng(seed)
+    obs, p = _two_curves(40, 3)
+    assert trend_basis(obs, p).shape == (len(obs), 1)  # one column for both curves
+    t = obs["time_s"].to_numpy()
+    drift = -0.17 * p * (t - 119.5) / 239.0  # each curve's time runs 0..239 s
+    expected = float(np.sum((drift / 0.1) ** 2))
+    assert expected == pytest.approx(2000 * 0.17**2, rel=0.1)
+    white = rng.normal(0.0, 0.1, len(obs))
+    nm = fit_noise(obs, white, stated={"stress": 0.1}, drift=False)
+    out = remaining(obs, white + drift, nm, prediction=p)
+    assert out["trend"]["dof"] == 1
+    assert out["trend"]["gain"] == pytest.approx(expected, rel=0.3)
+    assert out["trend"]["significant"]
+    clean = remaining(obs, white, nm, prediction=p)
+    assert not clean["trend"]["significant"]

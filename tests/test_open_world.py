@@ -208,3 +208,23 @@ def test_an_effect_at_zero_size_is_invisible_beside_its_partner():
                             {})
     assert beside["compressibility"] < 0.1
     assert beside["imperfect_gluing"] > 1.5
+
+
+def test_a_missed_effect_within_its_stated_detection_limit_counts_as_reported():
+    """A pair's verdict that names one effect counts "within a reported ambiguity or
+    detection limit" only when the other's true size is within the limit the diagnosis
+    stated beside the named one (nu0 0.426 against a limit of 0.399: yes; 0.35: no)."""
+    from diagnosis.open_benchmark import _correct, _named_within_ambiguity
+
+    lab = {"kind": "pair", "effects": ["compressibility", "imperfect_gluing"],
+           "expected": "compressibility+imperfect_gluing",
+           "truth": {"nu0": 0.426, "log10_k": -0.1}}
+    res = {"verdict": "imperfect_gluing", "effects": ["imperfect_gluing"],
+           "detection_limits": {"compressibility": {"nu0": {
+               "from": 0.49, "step": 0.091, "would_show_at": [0.399],
+               "within_bounds": True}}}}
+    assert not _correct(lab, res) and _named_within_ambiguity(lab, res)
+    assert not _named_within_ambiguity({**lab, "truth": {"nu0": 0.35}}, res)
+    assert not _named_within_ambiguity(lab, {**res, "detection_limits": {}})
+    outside = {**lab, "kind": "outside"}
+    assert not _named_within_ambiguity(outside, res)

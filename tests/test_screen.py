@@ -79,3 +79,37 @@ def test_second_start_only_for_a_held_best_point():
     assert second_start([held, far, weak], held, needed=20.0) is far  # held, but the next
     assert second_start([held, far, near], held, needed=20.0) is near  # trusted first
     assert second_start([near, weak], near, needed=20.0) is None  # the best was trusted
+
+
+def test_detection_limit_is_the_step_that_earns_a_place():
+    """On a linear model y = mu a + nu0 b + offset c, the stated detection limit of nu0
+    beside the current model (mu) is the step s whose signature s b, refitted with mu by
+    least squares, removes exactly the bar (here 16) of chi-square; an offset column equal
+    to a multiple of a is masked (no allowed value shows: its step is infinite)."""
+    from diagnosis.effects import EFFECTS
+    from diagnosis.screen import detection_limits
+
+    x = np.linspace(0.0, 1.0, 50)
+    a, b = x, x**2
+    N0, FO = Param("nu0"), Param("force_offset")
+
+    def predict(values, names):
+        cols = {MU: a, N0: b, FO: 3.0 * a, Param("stretch_offset"): np.ones_like(x),
+                Param("torque_offset"): np.sin(x)}
+        y = values[MU] * a + (values[N0] - 0.49) * b + values[FO] * 3.0 * a
+        return types.SimpleNamespace(y=y, jacobian=np.column_stack([cols[n] for n in names]))
+
+    sim = types.SimpleNamespace(nu0=0.49, predict=predict)
+    current = types.SimpleNamespace(values={MU: 2.0})
+    sd = 0.01
+    limits = detection_limits(sim, current, [MU], a[:, None],
+                              {e: EFFECTS[e] for e in ("compressibility", "artefacts")},
+                              lambda J: J / sd, lambda eff: 16.0)
+    nu = limits["compressibility"]["nu0"]
+    data = 2.0 * a + nu["step"] * b  # nu0 short of 0.49 by the step, refitted with mu
+    (m,), *_ = np.linalg.lstsq(a[:, None], data, rcond=None)
+    gain = np.sum(((data - m * a) / sd) ** 2)
+    assert abs(gain - 16.0) < 1e-6
+    assert nu["would_show_at"] == [0.49 - nu["step"]] and nu["within_bounds"]
+    assert not limits["artefacts"]["force_offset"]["within_bounds"]
+    assert limits["artefacts"]["stretch_offset"]["within_bounds"]
