@@ -42,6 +42,7 @@ import pandas as pd
 
 from brain_fe.ends import resolve
 from brain_fe.parallel import SharedCounter, dynamic_items
+from brain_fe.parameters import Param
 from simulators.coordinates import NU0
 
 from . import locate as loc
@@ -49,7 +50,7 @@ from .effects import BASE_NAMES, check_effects, library, separating_test
 from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
 from .noise import NoiseModel, estimate_noise, fit_noise
 from .remaining import remaining, systematic_basis
-from .screen import detection_limits
+from .screen import detection_limits, masked_by_model
 from .selection import Context, Union, compare, compatible, run_round
 
 log = logging.getLogger(__name__)
@@ -258,13 +259,15 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                           sigma_dof=final_noise.dof)
     sd = final_noise.sd()
     rms_base, rms_final = _rms(obs, base, sd), _rms(obs, current, sd)
+    in_model = list(chosen)  # the effects of ``current``, named or not
     status, chosen, tried = decide(chosen, rem["systematic"], rms_base, rms_final)
     if tried:
         notes.append(f"the library's closest model ({'+'.join(sorted(tried))}) leaves "
                      f"{100 * rms_final / rms_base:.0f} % of the base RMS misfit; an effect "
                      "is named only when it at least halves it")
     doubt = _cannot_tell(status, rem, final_noise, noise)
-    limits, masked = _limits(ctx, comm, current, chosen, J, final_noise, effects)
+    limits, masked = _limits(ctx, comm, current, in_model, chosen, J, final_noise,
+                             effects)
     if rem["reproducible"]["repeats"] == "none":
         notes.append("no repeated ramp (one pass of each): wander and a smooth misfit cannot "
                      "be told apart by repetition; only the located test applies")
@@ -286,27 +289,29 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                      timings, limits, masked)
 
 
-def _limits(ctx: Context, comm, current: Fit, chosen: list, J: np.ndarray,
+def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np.ndarray,
             nm: NoiseModel, effects) -> tuple[dict, list]:
-    """The detection limits of the candidates not named beside the final model
-    (:func:`diagnosis.screen.detection_limits`, under the final noise model and the bar
-    of the next round), and those of them masked by the named effects: no allowed value
-    would show."""
+    """The detection limits of the candidates that could join the final model ``current``
+    (of effects ``in_model``, named or merely tried) under the final noise model and the
+    next round's bar (:func:`diagnosis.screen.detection_limits`), and those of them the
+    ``named`` effects mask: some allowed value would show alone, none beside them."""
     lib = ctx.lib
-    cands = {e: lib[e] for e in (effects or lib) if e not in chosen}
+    cands = {e: lib[e] for e in (effects or lib)
+             if e not in in_model and compatible(e, in_model)}
     m = max(len(cands), 1)
     try:
         with _sharing(ctx.sim, comm):
-            limits = detection_limits(ctx.sim, current, _all_names(lib, chosen), J, cands,
+            limits = detection_limits(ctx.sim, current, _all_names(lib, in_model), J, cands,
                                       nm.whiten_jacobian,
                                       lambda eff: ctx.needed(len(eff.names), m))
     except (RuntimeError, ValueError) as exc:  # a note is not worth a failed diagnosis
         log.warning("detection limits at the final model: %s", exc)
         return {}, []
-    masked = [{"effect": e, "beside": sorted(chosen), "separating_test": " / ".join(
-        dict.fromkeys(separating_test(e, c) for c in chosen))}
+    masked = [{"effect": e, "beside": sorted(named), "separating_test": " / ".join(
+        dict.fromkeys(separating_test(e, c) for c in named))}
         for e, d in limits.items()
-        if chosen and not any(v["within_bounds"] for v in d.values())]
+        if named and all(not v["within_bounds"] for v in d.values())
+        and any(masked_by_model(v, lib[e].bounds(Param.parse(n))) for n, v in d.items())]
     return limits, masked
 
 

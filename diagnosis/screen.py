@@ -182,8 +182,9 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
     ``needed(effect)`` of chi-square is sqrt(needed) / ||(I - P_{J_m}) j||.  What the
     current parameters can mimic does not count: an effect the named ones mask has a large
     limit, beyond its bounds when no allowed value would show.  ``whiten``: the noise
-    model's whitening of Jacobian columns.  Returns {effect: {parameter: {"from",
-    "step", "would_show_at", "within_bounds"}}}."""
+    model's whitening of Jacobian columns.  Returns {effect: {parameter: {"from", "step",
+    "step_alone" (beside nothing: what the tests can show at all), "would_show_at",
+    "within_bounds"}}}.  Raises ValueError when a Jacobian is not finite."""
     cands = {e: eff for e, eff in effects.items()
              if e in LINEAR_AT_NEUTRAL and not set(eff.names) & set(current_names)}
     if not cands:
@@ -192,21 +193,33 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
                for n in eff.names}
     names = [n for eff in cands.values() for n in eff.names]
     pred = sim.predict({**current.values, **neutral}, names)
-    Jm = whiten(J_current)
-    Jc = whiten(pred.jacobian)
-    scale = np.where(np.linalg.norm(Jm, axis=0) > 0, np.linalg.norm(Jm, axis=0), 1.0)
-    Q, _ = np.linalg.qr(Jm / scale)
+    Jm, Jc = whiten(np.asarray(J_current, float)), whiten(np.asarray(pred.jacobian, float))
+    if not (np.isfinite(Jm).all() and np.isfinite(Jc).all()):
+        raise ValueError("a Jacobian at the final model is not finite")
+    # an orthonormal basis of the span of J_m: zero and dependent columns add nothing
+    U, sv, _ = np.linalg.svd(Jm, full_matrices=False)
+    U = U[:, sv > (sv[0] if sv.size else 0.0) * 1e-10] if sv.size and sv[0] > 0 else U[:, :0]
     out: dict = {}
     for e, eff in cands.items():
         bar = math.sqrt(needed(eff))
         for n in eff.names:
             j = Jc[:, names.index(n)]
-            left = float(np.linalg.norm(j - Q @ (Q.T @ j)))
-            step = bar / left if left > 0 else math.inf
+            left = float(np.linalg.norm(j - U @ (U.T @ j)))
+            alone = float(np.linalg.norm(j))
             lo, hi = eff.bounds(n)
             x0 = neutral[n]
+            step = bar / left if left > 0 else math.inf
             show = [x for x in (x0 - step, x0 + step) if lo <= x <= hi]
             out.setdefault(e, {})[str(n)] = {
-                "from": x0, "step": step, "would_show_at": show,
-                "within_bounds": bool(show)}
+                "from": x0, "step": step,
+                "step_alone": bar / alone if alone > 0 else math.inf,
+                "would_show_at": show, "within_bounds": bool(show)}
     return out
+
+
+def masked_by_model(limit: dict, bounds: tuple[float, float]) -> bool:
+    """Whether a parameter's detection limit (an entry of :func:`detection_limits`) says the
+    current model masks it: alone some allowed value would show, beside the model none."""
+    lo, hi = bounds
+    x0, alone = limit["from"], limit["step_alone"]
+    return not limit["within_bounds"] and (lo <= x0 - alone or x0 + alone <= hi)

@@ -82,34 +82,44 @@ def test_second_start_only_for_a_held_best_point():
 
 
 def test_detection_limit_is_the_step_that_earns_a_place():
-    """On a linear model y = mu a + nu0 b + offset c, the stated detection limit of nu0
-    beside the current model (mu) is the step s whose signature s b, refitted with mu by
-    least squares, removes exactly the bar (here 16) of chi-square; an offset column equal
-    to a multiple of a is masked (no allowed value shows: its step is infinite)."""
+    """On a linear model y = mu a + nu0 b + offsets, the stated detection limit of nu0
+    beside the current model (mu, and a second parameter with a zero column: it must not
+    project anything out) is the step s whose signature s b, refitted with mu by least
+    squares, removes exactly the bar (here 16) of chi-square.  A force offset whose column
+    is a multiple of a is masked by the model (alone it would show); a torque offset with
+    no signature at all is not masked, merely invisible; a NaN Jacobian is refused."""
+    import pytest
+
     from diagnosis.effects import EFFECTS
-    from diagnosis.screen import detection_limits
+    from diagnosis.screen import detection_limits, masked_by_model
 
     x = np.linspace(0.0, 1.0, 50)
     a, b = x, x**2
-    N0, FO = Param("nu0"), Param("force_offset")
+    N0, FO, TO = Param("nu0"), Param("force_offset"), Param("torque_offset")
+    cols = {MU: a, N0: b, FO: 3.0 * a, Param("stretch_offset"): np.ones_like(x),
+            TO: np.zeros_like(x)}
 
     def predict(values, names):
-        cols = {MU: a, N0: b, FO: 3.0 * a, Param("stretch_offset"): np.ones_like(x),
-                Param("torque_offset"): np.sin(x)}
-        y = values[MU] * a + (values[N0] - 0.49) * b + values[FO] * 3.0 * a
-        return types.SimpleNamespace(y=y, jacobian=np.column_stack([cols[n] for n in names]))
+        return types.SimpleNamespace(y=None, jacobian=np.column_stack([cols[n] for n in names]))
 
     sim = types.SimpleNamespace(nu0=0.49, predict=predict)
     current = types.SimpleNamespace(values={MU: 2.0})
     sd = 0.01
-    limits = detection_limits(sim, current, [MU], a[:, None],
-                              {e: EFFECTS[e] for e in ("compressibility", "artefacts")},
+    effects = {e: EFFECTS[e] for e in ("compressibility", "artefacts")}
+    J = np.column_stack([a, np.zeros_like(x)])
+    limits = detection_limits(sim, current, [MU, Param("mu_1")], J, effects,
                               lambda J: J / sd, lambda eff: 16.0)
     nu = limits["compressibility"]["nu0"]
     data = 2.0 * a + nu["step"] * b  # nu0 short of 0.49 by the step, refitted with mu
     (m,), *_ = np.linalg.lstsq(a[:, None], data, rcond=None)
-    gain = np.sum(((data - m * a) / sd) ** 2)
-    assert abs(gain - 16.0) < 1e-6
+    assert abs(np.sum(((data - m * a) / sd) ** 2) - 16.0) < 1e-6
     assert nu["would_show_at"] == [0.49 - nu["step"]] and nu["within_bounds"]
-    assert not limits["artefacts"]["force_offset"]["within_bounds"]
-    assert limits["artefacts"]["stretch_offset"]["within_bounds"]
+    art = limits["artefacts"]
+    assert not art["force_offset"]["within_bounds"]
+    assert masked_by_model(art["force_offset"], EFFECTS["artefacts"].bounds(FO))
+    assert not art["torque_offset"]["within_bounds"]
+    assert not masked_by_model(art["torque_offset"], EFFECTS["artefacts"].bounds(TO))
+    assert art["stretch_offset"]["within_bounds"]
+    with pytest.raises(ValueError, match="not finite"):
+        detection_limits(sim, current, [MU], np.full((50, 1), np.nan), effects,
+                         lambda J: J / sd, lambda eff: 16.0)
