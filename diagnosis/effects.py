@@ -77,11 +77,12 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
            "curves shifted along the stretch axis or offset at zero deformation"),
 )}
 # A test that would separate two explanations the given tests cannot tell apart
+LATERAL = ("lateral expansion (or volume) measured in compression: only compressibility "
+           "changes it")
 SEPARATING_TEST = {
     frozenset({"viscoelastic", "mullins"}): "a relaxation test (hold at peak strain) or the "
     "same cycle at a 10x different rate: only viscoelasticity relaxes and depends on rate",
-    frozenset({"ogden_2term", "compressibility"}): "lateral expansion (or volume) measured "
-    "in compression: only compressibility changes it",
+    frozenset({"ogden_2term", "compressibility"}): LATERAL,
     frozenset({"imperfect_gluing", "compressibility"}): "a lubricated (slip-end) "
     "compression test: the glue layer then plays no role",
     frozenset({"imperfect_gluing", "ogden_2term"}): "torsion at a second specimen height: "
@@ -93,8 +94,10 @@ SEPARATING_TEST = {
 
 
 def separating_test(a: str, b: str) -> str:
-    return SEPARATING_TEST.get(frozenset({a, b}),
-                               "a test at a different rate, amplitude or end condition")
+    """The test that would tell ``a`` from ``b``: the table's, else the lateral expansion
+    for compressibility (the one quantity only it changes), else a generic suggestion."""
+    return SEPARATING_TEST.get(frozenset({a, b}), LATERAL if "compressibility" in (a, b)
+                               else "a test at a different rate, amplitude or end condition")
 
 # The homogeneous analytical model (cube tests reduced as if homogeneous) reports stresses:
 # its artefacts are a stretch offset and stress offsets instead of load-cell offsets.

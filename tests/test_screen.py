@@ -123,3 +123,15 @@ def test_detection_limit_is_the_step_that_earns_a_place():
     with pytest.raises(ValueError, match="not finite"):
         detection_limits(sim, current, [MU], np.full((50, 1), np.nan), effects,
                          lambda J: J / sd, lambda eff: 16.0)
+
+
+def test_compressibility_is_told_apart_by_the_lateral_expansion():
+    """Compressibility masked by any other effect: the separating test named is the lateral
+    expansion, the one quantity only compressibility changes; a pair of the table keeps its
+    own (gluing: a lubricated compression), a pair without compressibility the generic one."""
+    from diagnosis.effects import LATERAL, separating_test
+
+    assert separating_test("compressibility", "artefacts") == LATERAL
+    assert separating_test("viscoelastic", "compressibility") == LATERAL
+    assert "lubricated" in separating_test("imperfect_gluing", "compressibility")
+    assert "different rate" in separating_test("mullins", "artefacts")
