@@ -80,7 +80,7 @@ def test_open_world_two_cases_blind(tmp_path):
     protocol: the control `none`, the effect named and explained at the noise level."""
     s = run_open_benchmark(2, 1, tmp_path, comm=MPI.COMM_SELF)
     assert s["control"] == {"cases": 1, "correct": 1, "within_ambiguity": 1,
-                            "false_alarms": 0}
+                            "within_limit": 0, "false_alarms": 0}
     assert s["single"]["correct"] == 1
     assert s["explained_rms_over_true_noise_max"] < 1.2
     labels = json.loads((tmp_path / "labels.json").read_text())
