@@ -19,6 +19,9 @@
    noise model, are located along the protocol's axes (:mod:`diagnosis.locate`); what the
    final model leaves systematic (located, or reproducible across repetitions:
    :mod:`diagnosis.remaining`) decides the status.
+4. **What would show**: how large each candidate not named would have to be to earn its
+   place beside the final model (:func:`diagnosis.screen.detection_limits`), and those the
+   named effects mask.
 
 Outcome: ``verdict`` is ``none``, an effect, effects joined by ``+`` (alphabetical), or
 ``unexplained``;
