@@ -313,7 +313,7 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
     masked = [{"effect": e, "beside": sorted(named), "separating_test": " / ".join(
         dict.fromkeys(separating_test(e, c) for c in named))}
         for e, d in limits.items()
-        if named and all(not v["within_bounds"] for v in d.values())
+        if named and not any(v["within_bounds"] for v in d.values())
         and any(masked_by_model(v, lib[e].bounds(Param.parse(n))) for n, v in d.items())]
     return limits, masked
 

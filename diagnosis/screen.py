@@ -198,7 +198,7 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
         raise ValueError("a Jacobian at the final model is not finite")
     # an orthonormal basis of the span of J_m: zero and dependent columns add nothing
     U, sv, _ = np.linalg.svd(Jm, full_matrices=False)
-    U = U[:, sv > (sv[0] if sv.size else 0.0) * 1e-10] if sv.size and sv[0] > 0 else U[:, :0]
+    U = U[:, sv > sv.max(initial=0.0) * 1e-10]
     out: dict = {}
     for e, eff in cands.items():
         bar = math.sqrt(needed(eff))
