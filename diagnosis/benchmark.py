@@ -294,13 +294,13 @@ def _diagnose_case(obs, refinement, correction_refinement, classes, name) -> dic
 
 def rms_over_true_noise(obs: pd.DataFrame, res: dict, sigma) -> float:
     """Residual RMS after modelling against the noise actually added, pooled over rows;
-    ``sigma(channel, values)``: that noise's SD for a (curve, channel) series (the
-    benchmark knows it, the diagnosis estimates it)."""
+    ``sigma(channel, series)``: that noise's SD for one (curve, channel) series, the rows
+    of ``obs`` (the benchmark knows it, the diagnosis estimates it)."""
     if "rms_by_curve_after" not in res:
         return float("nan")
     total, n = 0.0, 0
     for (c, ch), g in obs.groupby(["curve", "channel"], sort=False):
-        sd = sigma(ch, g["value"].to_numpy(float))
+        sd = sigma(ch, g)
         total += len(g) * (res["rms_by_curve_after"][f"{c}/{ch}"]["rms"] / sd) ** 2
         n += len(g)
     return math.sqrt(total / n)
@@ -308,7 +308,8 @@ def rms_over_true_noise(obs: pd.DataFrame, res: dict, sigma) -> float:
 
 def _rms_over_true_noise(obs: pd.DataFrame, res: dict, noise: float = 0.01) -> float:
     """The closed benchmark's noise: ``noise`` times each channel's peak of ``obs``."""
-    return rms_over_true_noise(obs, res, lambda ch, v: noise * float(np.abs(v).max()))
+    return rms_over_true_noise(obs, res,
+                               lambda ch, g: noise * float(g["value"].abs().max()))
 
 
 def _case_observations(out: Path, name: str) -> pd.DataFrame:

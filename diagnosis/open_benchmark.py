@@ -25,6 +25,8 @@ from mpi4py import MPI
 from brain_fe.io import write_json_atomic, write_text_atomic
 from brain_fe.parallel import as_progress, gather_all
 from brain_fe.solver import ConvergenceError
+from brain_fe.vocabulary import TIME
+from recordings.noise import RigNoise
 from recordings.observations import observations
 from recordings.tables import read_recordings, read_specimens
 from simulators.fe import FESimulator
@@ -92,9 +94,12 @@ def _diagnose(obs, spec, refinement, name) -> dict:
                 "rms_after": float("nan"), "elapsed_s": float("nan")}
 
 
-def _rms_over_rig_noise(obs: pd.DataFrame, res: dict, sd: dict) -> float:
-    """The open world's noise: the stationary SD the rig model put in, per channel."""
-    return rms_over_true_noise(obs, res, lambda ch, v: sd[ch])
+def _rms_over_rig_noise(obs: pd.DataFrame, res: dict, noise: dict) -> float:
+    """The open world's noise: per series, the RMS the rig model put in (its stationary
+    part, rounding and the drift over the series' times, :meth:`RigNoise.series_sd`);
+    ``noise``: channel -> :class:`RigNoise` or the label's dict of its fields."""
+    rig = {ch: n if isinstance(n, RigNoise) else RigNoise(**n) for ch, n in noise.items()}
+    return rms_over_true_noise(obs, res, lambda ch, g: rig[ch].series_sd(g[TIME].to_numpy()))
 
 
 def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int = 1,
@@ -140,7 +145,7 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
         if res is None:
             res = _diagnose(obs, case.spec, refinement, case.name)
             write_json_atomic(result_path, res, indent=1)
-        res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, noise_sd(case.noise))
+        res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, case.noise)
         mine.append((case.name, label, res))
         log.info("%s: %s %s -> %s (%s)", case.name, label["kind"], label["expected"],
                  res["verdict"], res["status"])
@@ -321,12 +326,14 @@ def rescore_open(out: str | Path) -> dict:
         spec = read_specimens(out / "cases" / f"{name}_specimens.csv")
         obs = observations(read_recordings(out / "cases" / f"{name}_recordings.csv", spec))
         res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res,
-                                                               labels[name]["noise_sd"])
+                                                               labels[name]["noise"])
         results[name] = res
     if not labels:
         raise ValueError(f"{out}: no case has both a label and a result yet")
+    before = out / "summary.json"  # the run's own list of draws left out, if it wrote one
+    left_out = json.loads(before.read_text()).get("left_out", []) if before.exists() else []
     summary = score(labels, results)
-    summary["left_out"] = []
+    summary["left_out"] = left_out
     write_json_atomic(out / "summary.json", summary, indent=1)
     write_text_atomic(out / "summary.md", summary_markdown(summary))
     return summary

@@ -52,6 +52,16 @@ class RigNoise:
         """SD of the stationary part (white, filtered, wander)."""
         return math.sqrt(self.white**2 + self.filtered**2 + self.wander**2)
 
+    def series_sd(self, t) -> float:
+        """Root-mean-square noise this channel adds to a series recorded at the times ``t``
+        [s], in expectation over its draws: the stationary part, the rounding error (uniform,
+        ``quantum^2 / 12``) and the drift, whose rate is drawn once per series, so that it
+        contributes ``drift^2`` times the mean of ``(t - t[0])^2``."""
+        t = np.asarray(t, float)
+        ramp = float(np.mean((t - t[0]) ** 2)) if len(t) else 0.0
+        return math.sqrt(self.stationary_sd() ** 2 + self.quantum**2 / 12
+                         + self.drift**2 * ramp)
+
 
 def _ou(t: np.ndarray, sd: float, tau: float, rng) -> np.ndarray:
     """Ornstein-Uhlenbeck process of stationary SD ``sd`` and correlation time ``tau`` at
