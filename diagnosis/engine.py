@@ -53,7 +53,7 @@ from .effects import BASE_NAMES, check_effects, library, separating_test
 from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
 from .noise import NoiseModel, estimate_noise, fit_noise
 from .remaining import remaining, systematic_basis
-from .screen import detection_limits, masked_by_model
+from .screen import AT_DESIGN, design, design_scales, detection_limits, masked_by_model
 from .selection import Context, Union, compare, compatible, run_round
 
 log = logging.getLogger(__name__)
@@ -302,11 +302,13 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
     cands = {e: lib[e] for e in (effects or lib)
              if e not in in_model and compatible(e, in_model)}
     m = max(len(cands), 1)
+    scales = design_scales(ctx.sim, ctx.obs, current.values)
+    points = {e: design(lib[e], ctx.sim.nu0, scales) for e in cands if e in AT_DESIGN}
     try:
         with _sharing(ctx.sim, comm):
             limits = detection_limits(ctx.sim, current, _all_names(lib, in_model), J, cands,
                                       nm.whiten_jacobian,
-                                      lambda eff: ctx.needed(len(eff.names), m))
+                                      lambda eff: ctx.needed(len(eff.names), m), points)
     except (RuntimeError, ValueError) as exc:  # a note is not worth a failed diagnosis
         log.warning("detection limits at the final model: %s", exc)
         return {}, []
@@ -314,7 +316,8 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
         dict.fromkeys(separating_test(e, c) for c in named))}
         for e, d in limits.items()
         if named and not any(v["within_bounds"] for v in d.values())
-        and any(masked_by_model(v, lib[e].bounds(Param.parse(n))) for n, v in d.items())]
+        and any(masked_by_model(v, lib[e].bounds(Param.parse(v["parameter"])))
+                for v in d.values())]
     return limits, masked
 
 

@@ -184,16 +184,18 @@ def _within_stated_limit(label: dict, res: dict) -> bool:
     """The verdict names part of a library truth and nothing else, and every effect it left
     out has its true size within the detection limit the diagnosis stated for it beside the
     named ones (``detection_limits``: each parameter's true value closer to its neutral
-    value than the step that would show).  Counted apart from the exact set: the limit is
-    taken under the final noise model, whose residual still holds the missed effect."""
+    value than the step that would show; for an effect stated at several design points,
+    than the smallest of them).  Counted apart from the exact set: the limit is taken
+    under the final noise model, whose residual still holds the missed effect."""
     want, got = set(label["effects"]), set(res.get("effects", []))
     if label["kind"] == "outside" or not got or not got < want:
         return False
     truth = label.get("truth", {})
     for e in want - got:
         limits = (res.get("detection_limits") or {}).get(e)
-        if not limits or not all(n in truth and abs(truth[n] - v["from"]) < v["step"]
-                                 for n, v in limits.items()):
+        if not limits or not all(
+                (n := v.get("parameter", key)) in truth and abs(truth[n] - v["from"]) < v["step"]
+                for key, v in limits.items()):
             return False
     return True
 

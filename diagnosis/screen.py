@@ -171,28 +171,76 @@ def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dic
 # nuisance parameter), so that one Jacobian at the final fit says how large they would have
 # to be to show: compressibility (from the assumed nu0) and the test artefacts (from zero)
 LINEAR_AT_NEUTRAL = ("compressibility", "artefacts")
+# Candidates whose amplitude acts at its neutral zero only through a nuisance parameter
+# (beta with tau, mu_1 with alpha_1): their limits are stated at each point of the generic
+# design, each point a further term of the same family on a free index (a Maxwell branch,
+# an Ogden term of zero size), so that the same single prediction serves them all
+AT_DESIGN = ("viscoelastic", "ogden_2term")
+
+
+def design_scales(sim, obs: pd.DataFrame, values: dict) -> dict:
+    """:func:`data_scales` of ``obs`` for the simulator's specimen (5 mm when unknown)."""
+    geometry = getattr(sim, "geometry", None)
+    return data_scales(obs, values, geometry.height_mm if geometry is not None else 5.0)
+
+
+def _term_copies(effect, points: list[dict], values) -> list[tuple[dict, Param, Param]]:
+    """Per design point of an :data:`AT_DESIGN` effect: (the point's coordinates on a free
+    term index, the amplitude parameter there, the nuisance parameter there).  Free: beyond
+    every index of the effect's families among ``values`` (the current model's terms)."""
+    fams = {n.family for n in effect.names}
+    k = 1 + max([p.index for p in map(Param.parse, values)
+                 if p.family in fams and p.index is not None], default=-1)
+    (amp,) = [n for n in effect.names if n not in NUISANCE]
+    (nuis,) = [n for n in effect.names if n in NUISANCE]
+    out = []
+    for i, pt in enumerate(points):
+        a, q = Param(amp.family, k + i), Param(nuis.family, k + i)
+        out.append(({a: 0.0, q: float(pt[str(nuis)])}, a, q))
+    return out
 
 
 def detection_limits(sim, current, current_names, J_current: np.ndarray, effects: dict,
-                     whiten, needed) -> dict:
-    """How large each candidate of ``effects`` (of :data:`LINEAR_AT_NEUTRAL`, not in the
+                     whiten, needed, points: dict | None = None) -> dict:
+    """How large each candidate of ``effects`` (of :data:`LINEAR_AT_NEUTRAL` and, with
+    their design ``points`` ({effect: [point, ...]}), of :data:`AT_DESIGN`; not in the
     ``current`` model) would have to be to earn its place beside the current model, one
     parameter at a time, linearised at its neutral point: with the whitened Jacobians J_m
     of the current model and j of the parameter, the smallest step that removes
     ``needed(effect)`` of chi-square is sqrt(needed) / ||(I - P_{J_m}) j||.  What the
     current parameters can mimic does not count: an effect the named ones mask has a large
-    limit, beyond its bounds when no allowed value would show.  ``whiten``: the noise
-    model's whitening of Jacobian columns.  Returns {effect: {parameter: {"from", "step",
-    "step_alone" (beside nothing: what the tests can show at all), "would_show_at",
-    "within_bounds"}}}.  Raises ValueError when a Jacobian is not finite."""
-    cands = {e: eff for e, eff in effects.items()
-             if e in LINEAR_AT_NEUTRAL and not set(eff.names) & set(current_names)}
-    if not cands:
+    limit, beyond its bounds when no allowed value would show.  An effect with a nuisance
+    parameter has one limit of its amplitude per design point (tau, alpha_1 held there).
+    ``whiten``: the noise model's whitening of Jacobian columns.  Returns {effect: {label:
+    {"parameter", "at" (the nuisance held, or {}), "from", "step", "step_alone" (beside
+    nothing: what the tests can show at all), "would_show_at", "within_bounds"}}}, the label
+    the parameter's name (with ``at ...`` for a design point).  Raises ValueError when a
+    Jacobian is not finite."""
+    points = points or {}
+    taken = set(current_names)
+    linear = {e: eff for e, eff in effects.items()
+              if e in LINEAR_AT_NEUTRAL and not set(eff.names) & taken}
+    at_design = {e: _term_copies(eff, points[e], current.values)
+                 for e, eff in effects.items()
+                 if e in AT_DESIGN and points.get(e) and not set(eff.names) & taken}
+    if not linear and not at_design:
         return {}
-    neutral = {n: (sim.nu0 if str(n) == "nu0" else 0.0) for eff in cands.values()
-               for n in eff.names}
-    names = [n for eff in cands.values() for n in eff.names]
-    pred = sim.predict({**current.values, **neutral}, names)
+    values = {n: (sim.nu0 if str(n) == "nu0" else 0.0) for eff in linear.values()
+              for n in eff.names}
+    # (effect, label, parameter as the effect names it, coordinate predicted, "at")
+    rows = [(e, str(n), n, n, {}) for e, eff in linear.items() for n in eff.names]
+    for e, copies in at_design.items():
+        eff = effects[e]
+        (amp,) = [n for n in eff.names if n not in NUISANCE]
+        (nuis,) = [n for n in eff.names if n in NUISANCE]
+        for coords, a, q in copies:
+            values.update(coords)
+            at = {str(nuis): coords[q]}
+            shown = (f"{str(nuis).removeprefix('log10_')} = {10.0 ** coords[q]:.3g}"
+                     if nuis.family.startswith("log10_") else f"{nuis} = {coords[q]:.3g}")
+            rows.append((e, f"{amp} at {shown}", amp, a, at))
+    names = [r[3] for r in rows]
+    pred = sim.predict({**current.values, **values}, names)
     Jm, Jc = whiten(np.asarray(J_current, float)), whiten(np.asarray(pred.jacobian, float))
     if not (np.isfinite(Jm).all() and np.isfinite(Jc).all()):
         raise ValueError("a Jacobian at the final model is not finite")
@@ -200,20 +248,19 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
     U, sv, _ = np.linalg.svd(Jm, full_matrices=False)
     U = U[:, sv > sv.max(initial=0.0) * 1e-10]
     out: dict = {}
-    for e, eff in cands.items():
-        bar = math.sqrt(needed(eff))
-        for n in eff.names:
-            j = Jc[:, names.index(n)]
-            left = float(np.linalg.norm(j - U @ (U.T @ j)))
-            alone = float(np.linalg.norm(j))
-            lo, hi = eff.bounds(n)
-            x0 = neutral[n]
-            step = bar / left if left > 0 else math.inf
-            show = [x for x in (x0 - step, x0 + step) if lo <= x <= hi]
-            out.setdefault(e, {})[str(n)] = {
-                "from": x0, "step": step,
-                "step_alone": bar / alone if alone > 0 else math.inf,
-                "would_show_at": show, "within_bounds": bool(show)}
+    for col, (e, label, n, coord, at) in enumerate(rows):
+        bar = math.sqrt(needed(effects[e]))
+        j = Jc[:, col]
+        left = float(np.linalg.norm(j - U @ (U.T @ j)))
+        alone = float(np.linalg.norm(j))
+        lo, hi = effects[e].bounds(n)
+        x0 = values[coord]
+        step = bar / left if left > 0 else math.inf
+        show = [x for x in (x0 - step, x0 + step) if lo <= x <= hi]
+        out.setdefault(e, {})[label] = {
+            "parameter": str(n), "at": at, "from": x0, "step": step,
+            "step_alone": bar / alone if alone > 0 else math.inf,
+            "would_show_at": show, "within_bounds": bool(show)}
     return out
 
 

@@ -28,7 +28,7 @@ import numpy as np
 from scipy import stats
 
 from .fitting import Fit, fit
-from .screen import data_scales, design, score
+from .screen import design, design_scales, score
 
 log = logging.getLogger(__name__)
 
@@ -121,9 +121,7 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
     t0 = time.perf_counter()
     names = _names(ctx, current_effects)
     if first is None:
-        geometry = getattr(sim, "geometry", None)
-        scales = data_scales(obs, current.values,
-                             geometry.height_mm if geometry is not None else 5.0)
+        scales = design_scales(sim, obs, current.values)
         points = [(e, p) for e in candidates for p in design(ctx.lib[e], sim.nu0, scales)]
     else:
         candidates = [e for e in candidates if e in first.fits]

@@ -125,6 +125,60 @@ def test_detection_limit_is_the_step_that_earns_a_place():
                          lambda J: J / sd, lambda eff: 16.0)
 
 
+def test_detection_limits_of_effects_with_a_time_or_exponent_of_their_own():
+    """Viscoelasticity and a second Ogden term act at their neutral zero only through tau
+    and alpha_1: their limit is stated at each design point, each a further Maxwell branch
+    or Ogden term of zero size on a free index (the current model's two Ogden terms take
+    mu_0 and mu_1, so the copies start at mu_2), all in one prediction.  On a linear model
+    whose columns depend on the held tau or alpha, every stated step is the one whose
+    signature, refitted with mu_0 by least squares, removes exactly the bar (16)."""
+    from diagnosis.effects import EFFECTS
+    from diagnosis.screen import detection_limits
+
+    x = np.linspace(0.0, 1.0, 60)
+    seen = {}
+
+    def column(q, values):
+        if q == MU:
+            return x
+        if q.family == "beta":
+            return 1.0 - np.exp(-x / 10.0 ** values[Param("log10_tau", q.index)])
+        return x ** (2.0 + values[Param("alpha", q.index)] / 10.0)  # mu_k
+
+    def predict(values, names):
+        seen.update({str(n): values[n] for n in names})
+        return types.SimpleNamespace(y=None, jacobian=np.column_stack(
+            [column(n, values) for n in names]))
+
+    sim = types.SimpleNamespace(nu0=0.49, predict=predict)
+    current = types.SimpleNamespace(values={MU: 1.0, Param("alpha", 0): -10.0,
+                                            Param("mu", 1): 0.2, Param("alpha", 1): 5.0})
+    effects = {e: EFFECTS[e] for e in ("viscoelastic", "ogden_2term")}
+    points = {"viscoelastic": [{"beta_0": 0.0, "log10_tau_0": t} for t in (-1.0, 0.0)],
+              "ogden_2term": [{"mu_1": 0.0, "alpha_1": a} for a in (-5.0, 5.0)]}
+    sd = 0.01
+    # the current model's own second Ogden term: the candidate ogden_2term is in the model
+    limits = detection_limits(sim, current, [MU, Param("mu", 1)], x[:, None], effects,
+                              lambda J: J / sd, lambda eff: 16.0, points)
+    assert set(limits) == {"viscoelastic"}
+    current.values = {MU: 1.0, Param("alpha", 0): -10.0}
+    current.values[Param("mu", 1)] = 0.0  # a term of zero size does not free its index
+    limits = detection_limits(sim, current, [MU], x[:, None], effects, lambda J: J / sd,
+                              lambda eff: 16.0, points)
+    assert set(seen) == {"beta_0", "beta_1", "mu_2", "mu_3"}  # free indices, one solve
+    for e, held in (("viscoelastic", "log10_tau_0"), ("ogden_2term", "alpha_1")):
+        assert len(limits[e]) == 2
+        for v in limits[e].values():
+            assert v["parameter"] == EFFECTS[e].names[0].__str__() and v["from"] == 0.0
+            k = {"log10_tau_0": Param("log10_tau", 9), "alpha_1": Param("alpha", 9)}[held]
+            q = Param("beta" if e == "viscoelastic" else "mu", 9)
+            sig = v["step"] * column(q, {k: v["at"][held]})
+            (m,), *_ = np.linalg.lstsq(x[:, None], x + sig, rcond=None)
+            assert abs(np.sum(((x + sig - m * x) / sd) ** 2) - 16.0) < 1e-6
+            assert v["would_show_at"] == [v["step"]]  # beta and mu_1 >= 0 only
+    assert len({v["step"] for v in limits["viscoelastic"].values()}) == 2  # tau matters
+
+
 def test_compressibility_is_told_apart_by_the_lateral_expansion():
     """Compressibility masked by any other effect: the separating test named is the lateral
     expansion, the one quantity only compressibility changes; a pair of the table keeps its
