@@ -304,13 +304,18 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
     m = max(len(cands), 1)
     scales = design_scales(ctx.sim, ctx.obs, current.values)
     points = {e: design(lib[e], ctx.sim.nu0, scales) for e in cands if e in AT_DESIGN}
-    try:
-        with _sharing(ctx.sim, comm):
-            limits = detection_limits(ctx.sim, current, _all_names(lib, in_model), J, cands,
-                                      nm.whiten_jacobian,
-                                      lambda eff: ctx.needed(len(eff.names), m), points)
-    except (RuntimeError, ValueError) as exc:  # a note is not worth a failed diagnosis
-        log.warning("detection limits at the final model: %s", exc)
+    limits = {}
+    for pts in (points, {}):  # without the design points' terms when their solve fails
+        try:
+            with _sharing(ctx.sim, comm):
+                limits = detection_limits(ctx.sim, current, _all_names(lib, in_model), J,
+                                          cands, nm.whiten_jacobian,
+                                          lambda eff: ctx.needed(len(eff.names), m), pts)
+            break
+        except (RuntimeError, ValueError) as exc:  # a note is not worth a failed diagnosis
+            log.warning("detection limits at the final model%s: %s",
+                        " (with the design points)" if pts else "", exc)
+    if not limits:
         return {}, []
     masked = [{"effect": e, "beside": sorted(named), "separating_test": " / ".join(
         dict.fromkeys(separating_test(e, c) for c in named))}
