@@ -305,7 +305,8 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
     scales = design_scales(ctx.sim, ctx.obs, current.values)
     points = {e: design(lib[e], ctx.sim.nu0, scales) for e in cands if e in AT_DESIGN}
     limits = {}
-    for pts in (points, {}):  # without the design points' terms when their solve fails
+    for pts in (points, {}) if points else ({},):  # without the design points' terms if
+        # their solve fails
         try:
             with _sharing(ctx.sim, comm):
                 limits = detection_limits(ctx.sim, current, _all_names(lib, in_model), J,
