@@ -304,18 +304,33 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
     m = max(len(cands), 1)
     scales = design_scales(ctx.sim, ctx.obs, current.values)
     points = {e: design(lib[e], ctx.sim.nu0, scales) for e in cands if e in AT_DESIGN}
+
+    def stated(group: dict, pts: dict) -> dict:
+        if not group:
+            return {}
+        with _sharing(ctx.sim, comm):
+            return detection_limits(ctx.sim, current, _all_names(lib, in_model), J, group,
+                                    nm.whiten_jacobian,
+                                    lambda eff: ctx.needed(len(eff.names), m), pts)
+
+    # those of compressibility and the offsets first, then (their own solve, with a
+    # Maxwell branch or Ogden term per design point) those of the effects with a time or
+    # an exponent, and the elastic ones alone if the history of the branches cannot be
+    # followed; a final path that cannot be followed fails once
+    linear = {e: v for e, v in cands.items() if e not in AT_DESIGN}
+    at_design = {e: v for e, v in cands.items() if e in AT_DESIGN}
+    elastic = {e: v for e, v in at_design.items() if e != "viscoelastic"}
     limits = {}
-    for pts in (points, {}) if points else ({},):  # without the design points' terms if
-        # their solve fails
+    for group in (linear, at_design, elastic if elastic != at_design else {}):
         try:
-            with _sharing(ctx.sim, comm):
-                limits = detection_limits(ctx.sim, current, _all_names(lib, in_model), J,
-                                          cands, nm.whiten_jacobian,
-                                          lambda eff: ctx.needed(len(eff.names), m), pts)
-            break
-        except (RuntimeError, ValueError) as exc:  # a note is not worth a failed diagnosis
-            log.warning("detection limits at the final model%s: %s",
-                        " (with the design points)" if pts else "", exc)
+            limits.update(stated(group, points))
+            if group is at_design:
+                break
+        except Exception as exc:  # a note is not worth a failed diagnosis (nor a compile)
+            log.warning("detection limits at the final model: %s: %s",
+                        type(exc).__name__, exc)
+            if group is linear:
+                break
     if not limits:
         return {}, []
     masked = [{"effect": e, "beside": sorted(named), "separating_test": " / ".join(

@@ -211,7 +211,9 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
     current parameters can mimic does not count: an effect the named ones mask has a large
     limit, beyond its bounds when no allowed value would show.  An effect with a nuisance
     parameter has one limit of its amplitude per design point (tau, alpha_1 held there).
-    ``whiten``: the noise model's whitening of Jacobian columns.  Returns {effect: {label:
+    ``whiten``: the noise model's whitening of Jacobian columns (``J_current``, the final
+    fit's, serves the effects without design points; with them, the model's columns come
+    from the same prediction).  Returns {effect: {label:
     {"parameter", "at" (the nuisance held, or {}), "from", "step", "step_alone" (beside
     nothing: what the tests can show at all), "would_show_at", "within_bounds"}}}, the label
     the parameter's name (with ``at ...`` for a design point).  Raises ValueError when a
@@ -240,8 +242,14 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
                      if nuis.family.startswith("log10_") else f"{nuis} = {coords[q]:.3g}")
             rows.append((e, f"{amp} at {shown}", amp, a, at))
     names = [r[3] for r in rows]
-    pred = sim.predict({**current.values, **values}, names)
-    Jm, Jc = whiten(np.asarray(J_current, float)), whiten(np.asarray(pred.jacobian, float))
+    if at_design:  # further terms (a Maxwell branch brings the history along) put the
+        # prediction on another path than the final fit's: the model's columns from it too
+        own = sim.predict({**current.values, **values}, list(current_names) + names)
+        J_current = own.jacobian[:, :len(current_names)]
+        jac = own.jacobian[:, len(current_names):]
+    else:
+        jac = sim.predict({**current.values, **values}, names).jacobian
+    Jm, Jc = whiten(np.asarray(J_current, float)), whiten(np.asarray(jac, float))
     if not (np.isfinite(Jm).all() and np.isfinite(Jc).all()):
         raise ValueError("a Jacobian at the final model is not finite")
     # an orthonormal basis of the span of J_m: zero and dependent columns add nothing

@@ -129,7 +129,8 @@ def test_detection_limits_of_effects_with_a_time_or_exponent_of_their_own():
     """Viscoelasticity and a second Ogden term act at their neutral zero only through tau
     and alpha_1: their limit is stated at each design point, each a further Maxwell branch
     or Ogden term of zero size on a free index (the current model's two Ogden terms take
-    mu_0 and mu_1, so the copies start at mu_2), all in one prediction.  On a linear model
+    mu_0 and mu_1, so the copies start at mu_2), all in one prediction, which also gives
+    the model's own columns (on the path the further terms take).  On a linear model
     whose columns depend on the held tau or alpha, every stated step is the one whose
     signature, refitted with mu_0 by least squares, removes exactly the bar (16)."""
     from diagnosis.effects import EFFECTS
@@ -147,6 +148,7 @@ def test_detection_limits_of_effects_with_a_time_or_exponent_of_their_own():
 
     def predict(values, names):
         seen.update({str(n): values[n] for n in names})
+        seen["calls"] = seen.get("calls", 0) + 1
         return types.SimpleNamespace(y=None, jacobian=np.column_stack(
             [column(n, values) for n in names]))
 
@@ -163,9 +165,12 @@ def test_detection_limits_of_effects_with_a_time_or_exponent_of_their_own():
     assert set(limits) == {"viscoelastic"}
     current.values = {MU: 1.0, Param("alpha", 0): -10.0}
     current.values[Param("mu", 1)] = 0.0  # a term of zero size does not free its index
+    seen.clear()
     limits = detection_limits(sim, current, [MU], x[:, None], effects, lambda J: J / sd,
                               lambda eff: 16.0, points)
-    assert set(seen) == {"beta_0", "beta_1", "mu_2", "mu_3"}  # free indices, one solve
+    # free indices, one solve, the model's own column from it too
+    assert seen.pop("calls") == 1
+    assert set(seen) == {"mu_0", "beta_0", "beta_1", "mu_2", "mu_3"}
     for e, held in (("viscoelastic", "log10_tau_0"), ("ogden_2term", "alpha_1")):
         assert len(limits[e]) == 2
         for v in limits[e].values():
