@@ -231,3 +231,17 @@ def test_a_missed_effect_within_its_stated_detection_limit_is_counted_apart():
     assert not _within_stated_limit({**lab, "kind": "outside"}, res)
     wrong = {**res, "effects": ["imperfect_gluing", "mullins"]}
     assert not _within_stated_limit(lab, wrong)
+    # an effect stated at several design points: within only below the smallest step
+    # (the most favourable tau), whatever the true tau
+    visco = {"kind": "pair", "effects": ["mullins", "viscoelastic"],
+             "expected": "mullins+viscoelastic",
+             "truth": {"beta_0": 0.03, "log10_tau_0": 0.5, "softening": 0.3}}
+    limits = {f"beta_0 at tau_0 = {t}": {"parameter": "beta_0", "at": {"log10_tau_0": t},
+                                          "from": 0.0, "step": step, "step_alone": 0.01,
+                                          "would_show_at": [step], "within_bounds": True}
+              for t, step in ((0.0, 0.05), (1.0, 0.04), (2.0, 0.2))}
+    named = {"verdict": "mullins", "effects": ["mullins"],
+             "detection_limits": {"viscoelastic": limits}}
+    assert _within_stated_limit(visco, named)
+    assert not _within_stated_limit({**visco, "truth": {**visco["truth"], "beta_0": 0.045}},
+                                    named)
