@@ -194,3 +194,52 @@ def test_compressibility_is_told_apart_by_the_lateral_expansion():
     assert separating_test("viscoelastic", "compressibility") == LATERAL
     assert "lubricated" in separating_test("imperfect_gluing", "compressibility")
     assert "different rate" in separating_test("mullins", "artefacts")
+
+
+def test_limits_survive_a_history_that_cannot_be_followed(caplog):
+    """engine._limits: compressibility and the offsets first (the fit's Jacobian), then the
+    effects with design points in their own solve; when the Maxwell branches' history
+    cannot be followed the elastic second Ogden term is still stated, the failure logged,
+    the diagnosis not failed; when the final path itself fails, nothing is stated."""
+    import logging
+
+    import pandas as pd
+
+    from diagnosis.effects import EFFECTS
+    from diagnosis.engine import _limits
+    from diagnosis.selection import Context
+
+    n = 40
+    x = np.linspace(0.0, 1.0, n)
+    obs = pd.DataFrame({"specimen": "s", "curve": "torsion_0.15", "test": "torsion",
+                        "amplitude": 0.15, "channel": "torque",
+                        "branch": np.where(np.arange(n) < n // 2, "loading", "unloading"),
+                        "cycle": 1, "control": 0.15 * np.sin(np.pi * x), "time_s": 30 * x,
+                        "value": 0.0})
+    calls = []
+
+    def predict(values, names, fail=None):
+        calls.append([str(q) for q in names])
+        if fail is not None and fail(names):
+            raise RuntimeError("Newton failed")
+        return types.SimpleNamespace(y=None, jacobian=np.column_stack(
+            [x ** (1.0 + 0.1 * k) for k in range(len(names))]))
+
+    lib = {e: EFFECTS[e] for e in ("compressibility", "artefacts", "viscoelastic",
+                                   "ogden_2term")}
+    current = types.SimpleNamespace(values={MU: 1.0, Param("alpha", 0): -10.0})
+    nm = types.SimpleNamespace(whiten_jacobian=lambda J: J / 0.01)
+
+    def run(fail):
+        sim = types.SimpleNamespace(nu0=0.49, predict=lambda v, q: predict(v, q, fail))
+        ctx = Context(sim, obs, np.ones(n), lib, [MU], 1e-3, 10.0, 40, None)
+        calls.clear()
+        return _limits(ctx, None, current, [], [], x[:, None], nm, None)
+
+    with caplog.at_level(logging.WARNING, logger="diagnosis.engine"):
+        limits, masked = run(lambda q: any(p.family == "beta" for p in q))
+    assert set(limits) == {"compressibility", "artefacts", "ogden_2term"}
+    assert len(limits["ogden_2term"]) == 4 and len(calls) == 3
+    assert "Newton failed" in caplog.text
+    limits, _ = run(lambda q: True)  # the final path itself
+    assert limits == {} and len(calls) == 1
