@@ -240,6 +240,7 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
             at = {str(nuis): coords[q]}
             shown = (f"{str(nuis).removeprefix('log10_')} = {10.0 ** coords[q]:.3g}"
                      if nuis.family.startswith("log10_") else f"{nuis} = {coords[q]:.3g}")
+            shown += " s" if nuis.family == "log10_tau" else ""
             rows.append((e, f"{amp} at {shown}", amp, a, at))
     names = [r[3] for r in rows]
     if at_design:  # further terms (a Maxwell branch brings the history along) put the
