@@ -57,7 +57,8 @@ def main() -> None:
         lab, obs = _case(src, name)
         t0 = time.perf_counter()
         res = _diagnose(obs, types.SimpleNamespace(**lab["specimen"]), 1, name)
-        res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, lab["noise"])
+        res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, lab["noise"],
+                                                               lab.get("noise_rms"))
         write_json_atomic(out / f"{name}_result.json", res, indent=1, default=str)
         old = json.loads((src / "cases" / f"{name}_result.json").read_text())
         logging.getLogger("rediagnose").warning(
@@ -74,7 +75,8 @@ def main() -> None:
         labels[n] = lab
         new[n] = json.loads((out / f"{n}_result.json").read_text())
         o = json.loads((src / "cases" / f"{n}_result.json").read_text())
-        o["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, o, lab["noise"])
+        o["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, o, lab["noise"],
+                                                             lab.get("noise_rms"))
         old[n] = o
     so, sn = score(labels, old), score(labels, new)
     lines = ["# Stored results against the current engine, same recordings", "",

@@ -94,12 +94,21 @@ def _diagnose(obs, spec, refinement, name) -> dict:
                 "rms_after": float("nan"), "elapsed_s": float("nan")}
 
 
-def _rms_over_rig_noise(obs: pd.DataFrame, res: dict, noise: dict) -> float:
-    """The open world's noise: per series, the RMS the rig model put in (its stationary
-    part, rounding and the drift over the series' times, :meth:`RigNoise.series_sd`);
+def _rms_over_rig_noise(obs: pd.DataFrame, res: dict, noise: dict,
+                        realised: dict | None = None) -> float:
+    """The open world's noise: per series, the RMS of the noise actually added
+    (``realised``, {curve/channel: RMS}, the label's ``noise_rms``), or for labels written
+    before it was kept, the RMS the rig model puts in on average (its stationary part,
+    rounding and the drift over the series' times, :meth:`RigNoise.series_sd`);
     ``noise``: channel -> :class:`RigNoise` or the label's dict of its fields."""
     rig = {ch: n if isinstance(n, RigNoise) else RigNoise(**n) for ch, n in noise.items()}
-    return rms_over_true_noise(obs, res, lambda ch, g: rig[ch].series_sd(g[TIME].to_numpy()))
+    realised = realised or {}
+
+    def sd(ch, g):
+        key = f"{g['curve'].iloc[0]}/{ch}"
+        return realised[key] if key in realised else rig[ch].series_sd(g[TIME].to_numpy())
+
+    return rms_over_true_noise(obs, res, sd)
 
 
 def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int = 1,
@@ -145,7 +154,8 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
         if res is None:
             res = _diagnose(obs, case.spec, refinement, case.name)
             write_json_atomic(result_path, res, indent=1)
-        res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, case.noise)
+        res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, case.noise,
+                                                               case.noise_rms)
         mine.append((case.name, label, res))
         log.info("%s: %s %s -> %s (%s)", case.name, label["kind"], label["expected"],
                  res["verdict"], res["status"])
@@ -327,8 +337,8 @@ def rescore_open(out: str | Path) -> dict:
         res = json.loads(res_path.read_text())
         spec = read_specimens(out / "cases" / f"{name}_specimens.csv")
         obs = observations(read_recordings(out / "cases" / f"{name}_recordings.csv", spec))
-        res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res,
-                                                               labels[name]["noise"])
+        res["rms_after_over_true_noise"] = _rms_over_rig_noise(
+            obs, res, labels[name]["noise"], labels[name].get("noise_rms"))
         results[name] = res
     if not labels:
         raise ValueError(f"{out}: no case has both a label and a result yet")

@@ -352,6 +352,8 @@ class WorldCase:
     misfits: dict = field(default_factory=dict)  # per effect: calibrated base misfit / noise
     beside: dict = field(default_factory=dict)  # per effect of a pair: misfit / noise left
     # to the best model with the other effect (visible_beside); not a reason to draw again
+    noise_rms: dict = field(default_factory=dict)  # per curve/channel: the RMS of the noise
+    # actually added (recordings minus the noiseless path)
 
     def label(self) -> dict:
         from dataclasses import asdict
@@ -363,7 +365,8 @@ class WorldCase:
                 "noise": {ch: asdict(n) for ch, n in self.noise.items()},
                 "noise_kinds": list(self.noise_kinds), "sizes": self.sizes,
                 "base_misfit_over_noise": self.misfits,
-                "misfit_beside_the_other_over_noise": self.beside}
+                "misfit_beside_the_other_over_noise": self.beside,
+                "noise_rms": self.noise_rms}
 
 
 def expected(kind: str, effects: list) -> str:
@@ -496,8 +499,11 @@ def make_case(name: str, kind: str, effects: list, rng, *, noise_kinds=None,
                      models=models)
     clean["specimen"] = name
     rec = add_noise(clean, noise, rng)
+    added = observations(rec).assign(noise=lambda o: o["value"] - observations(clean)["value"])
+    noise_rms = {f"{c}/{ch}": float(np.sqrt(np.mean(g["noise"] ** 2)))
+                 for (c, ch), g in added.groupby(["curve", "channel"], sort=False)}
     specimens = pd.DataFrame({"specimen": [name], "region": ["synthetic"], "brain": ["B0"],
                               "radius_mm": [spec.radius_mm],
                               "height_mm": [spec.height_mm]})
     return rec, specimens, WorldCase(name, kind, list(effects), spec, truth, noise,
-                                     tuple(noise_kinds), sizes, misfits, beside)
+                                     tuple(noise_kinds), sizes, misfits, beside, noise_rms)

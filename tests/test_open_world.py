@@ -12,6 +12,9 @@ from mpi4py import MPI
 
 from diagnosis.open_benchmark import plan, rescore_open, run_open_benchmark
 from diagnosis.open_world import OUTSIDE, draw_specimen, record_times
+from recordings.noise import RigNoise
+from recordings.observations import observations
+from recordings.tables import read_recordings, read_specimens
 
 
 def test_plan_covers_every_kind_in_each_block_of_20():
@@ -86,6 +89,16 @@ def test_open_world_two_cases_blind(tmp_path):
     labels = json.loads((tmp_path / "labels.json").read_text())
     results = json.loads((tmp_path / "results.json").read_text())
     assert set(labels) == set(results) == {"world000", "world001"}
+    for name, lab in labels.items():  # the noise actually added, per curve and channel:
+        # near its expected RMS (the rig model's, over the series' times)
+        rms = lab["noise_rms"]
+        assert set(rms) == set(results[name]["rms_by_curve_after"])
+        spec = read_specimens(tmp_path / "cases" / f"{name}_specimens.csv")
+        obs = observations(read_recordings(tmp_path / "cases" / f"{name}_recordings.csv",
+                                           spec))
+        for (c, ch), g in obs.groupby(["curve", "channel"], sort=False):
+            want = RigNoise(**lab["noise"][ch]).series_sd(g["time_s"].to_numpy())
+            assert 0.6 < rms[f"{c}/{ch}"] / want < 1.6
     assert "expected" not in json.dumps(results)  # labels apart
     rec = pd.read_csv(tmp_path / "cases" / "world001_recordings.csv")
     assert rec["time_s"].diff().dropna().gt(0).any()
