@@ -305,32 +305,31 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
     scales = design_scales(ctx.sim, ctx.obs, current.values)
     points = {e: design(lib[e], ctx.sim.nu0, scales) for e in cands if e in AT_DESIGN}
 
-    def stated(group: dict, pts: dict) -> dict:
+    # those of compressibility and the offsets first (a final path that cannot be followed
+    # fails once), then in their own solve, with a Maxwell branch or Ogden term per design
+    # point, those of the effects with a time or an exponent, and the elastic ones alone
+    # if the history of the branches cannot be followed
+    def attempt(group: dict) -> dict | None:
         if not group:
             return {}
-        with _sharing(ctx.sim, comm):
-            return detection_limits(ctx.sim, current, _all_names(lib, in_model), J, group,
-                                    nm.whiten_jacobian,
-                                    lambda eff: ctx.needed(len(eff.names), m), pts)
-
-    # those of compressibility and the offsets first, then (their own solve, with a
-    # Maxwell branch or Ogden term per design point) those of the effects with a time or
-    # an exponent, and the elastic ones alone if the history of the branches cannot be
-    # followed; a final path that cannot be followed fails once
-    linear = {e: v for e, v in cands.items() if e not in AT_DESIGN}
-    at_design = {e: v for e, v in cands.items() if e in AT_DESIGN}
-    elastic = {e: v for e, v in at_design.items() if e != "viscoelastic"}
-    limits = {}
-    for group in (linear, at_design, elastic if elastic != at_design else {}):
         try:
-            limits.update(stated(group, points))
-            if group is at_design:
-                break
+            with _sharing(ctx.sim, comm):
+                return detection_limits(ctx.sim, current, _all_names(lib, in_model), J,
+                                        group, nm.whiten_jacobian,
+                                        lambda eff: ctx.needed(len(eff.names), m), points)
         except Exception as exc:  # a note is not worth a failed diagnosis (nor a compile)
             log.warning("detection limits at the final model: %s: %s",
                         type(exc).__name__, exc)
-            if group is linear:
-                break
+            return None
+
+    at_design = {e: v for e, v in cands.items() if e in AT_DESIGN}
+    elastic = {e: v for e, v in at_design.items() if e != "viscoelastic"}
+    limits = attempt({e: v for e, v in cands.items() if e not in AT_DESIGN})
+    if limits is not None:
+        more = attempt(at_design)
+        if more is None and elastic != at_design:
+            more = attempt(elastic)
+        limits.update(more or {})
     if not limits:
         return {}, []
     masked = [{"effect": e, "beside": sorted(named), "separating_test": " / ".join(

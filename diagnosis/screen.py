@@ -184,10 +184,11 @@ def design_scales(sim, obs: pd.DataFrame, values: dict) -> dict:
     return data_scales(obs, values, geometry.height_mm if geometry is not None else 5.0)
 
 
-def _term_copies(effect, points: list[dict], values) -> list[tuple[dict, Param, Param]]:
-    """Per design point of an :data:`AT_DESIGN` effect: (the point's coordinates on a free
-    term index, the amplitude parameter there, the nuisance parameter there).  Free: beyond
-    every index of the effect's families among ``values`` (the current model's terms)."""
+def _term_copies(effect, points: list[dict], values) -> tuple[Param, Param, list]:
+    """The amplitude and the nuisance parameter of an :data:`AT_DESIGN` effect, and per
+    design point (the point's coordinates on a free term index, the amplitude parameter
+    there, the nuisance parameter there).  Free: beyond every index of the effect's
+    families among ``values`` (the current model's terms)."""
     fams = {n.family for n in effect.names}
     k = 1 + max([p.index for p in map(Param.parse, values)
                  if p.family in fams and p.index is not None], default=-1)
@@ -197,7 +198,7 @@ def _term_copies(effect, points: list[dict], values) -> list[tuple[dict, Param, 
     for i, pt in enumerate(points):
         a, q = Param(amp.family, k + i), Param(nuis.family, k + i)
         out.append(({a: 0.0, q: float(pt[str(nuis)])}, a, q))
-    return out
+    return amp, nuis, out
 
 
 def detection_limits(sim, current, current_names, J_current: np.ndarray, effects: dict,
@@ -231,10 +232,7 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
               for n in eff.names}
     # (effect, label, parameter as the effect names it, coordinate predicted, "at")
     rows = [(e, str(n), n, n, {}) for e, eff in linear.items() for n in eff.names]
-    for e, copies in at_design.items():
-        eff = effects[e]
-        (amp,) = [n for n in eff.names if n not in NUISANCE]
-        (nuis,) = [n for n in eff.names if n in NUISANCE]
+    for e, (amp, nuis, copies) in at_design.items():
         for coords, a, q in copies:
             values.update(coords)
             at = {str(nuis): coords[q]}
@@ -243,13 +241,13 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
             shown += " s" if nuis.family == "log10_tau" else ""
             rows.append((e, f"{amp} at {shown}", amp, a, at))
     names = [r[3] for r in rows]
+    point = {**current.values, **values}
     if at_design:  # further terms (a Maxwell branch brings the history along) put the
         # prediction on another path than the final fit's: the model's columns from it too
-        own = sim.predict({**current.values, **values}, list(current_names) + names)
-        J_current = own.jacobian[:, :len(current_names)]
-        jac = own.jacobian[:, len(current_names):]
+        own = sim.predict(point, list(current_names) + names).jacobian
+        J_current, jac = own[:, :len(current_names)], own[:, len(current_names):]
     else:
-        jac = sim.predict({**current.values, **values}, names).jacobian
+        jac = sim.predict(point, names).jacobian
     Jm, Jc = whiten(np.asarray(J_current, float)), whiten(np.asarray(jac, float))
     if not (np.isfinite(Jm).all() and np.isfinite(Jc).all()):
         raise ValueError("a Jacobian at the final model is not finite")
