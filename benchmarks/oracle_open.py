@@ -43,8 +43,8 @@ from visible_beside import stored
 
 from brain_fe.io import write_json_atomic
 from brain_fe.parallel import SharedCounter, dynamic_items
-from diagnosis.effects import BASE_NAMES, library
-from diagnosis.engine import _all_names, _base, _noise_of
+from diagnosis.effects import BASE_NAMES, library, parameter_names
+from diagnosis.engine import _base, _noise_of
 from diagnosis.fitting import fit
 from diagnosis.open_world import misfit_left
 from diagnosis.selection import Context, Union
@@ -105,20 +105,20 @@ def oracle(lab: dict, obs, res: dict) -> dict:
     named, truth = list(res.get("effects", [])), list(lab["effects"])
 
     def run(effects, start):
-        return fit(sim, obs, weights, start, _all_names(lib, effects), effect="+".join(effects)
+        return fit(sim, obs, weights, start, parameter_names(lib, effects), effect="+".join(effects)
                    or "base", max_nfev=40, effect_def=Union(lib, effects) if effects else None)
 
     start_named = {**base.values, **res["refit_parameters"]}
     f_named = run(named, start_named) if named else base
     start_truth = {**base.values, **{k: v for k, v in lab["truth"].items()
-                                     if k in {str(n) for n in _all_names(lib, truth)}}}
+                                     if k in {str(n) for n in parameter_names(lib, truth)}}}
     f_truth = run(truth, start_truth)
     if f_named.chi2 < f_truth.chi2:  # the named model's optimum is the better start
         f_truth = min(f_truth, run(truth, {**start_truth, **f_named.values}),
                       key=lambda f: f.chi2)
     noise = _noise_of(obs, f_truth, None)
     ctx = Context(sim, obs, weights, lib, list(BASE_NAMES), ALPHA, BIC_MARGIN, 40, None)
-    k = len(_all_names(lib, truth)) - len(_all_names(lib, named))
+    k = len(parameter_names(lib, truth)) - len(parameter_names(lib, named))
     m = len(lib) - len(named)  # the round's candidates
     lrt = ctx.chi2(noise, f_named) - ctx.chi2(noise, f_truth)
     need = ctx.needed(k, m)

@@ -122,6 +122,15 @@ def plate_position(test: str, value: float, preload: float, height_mm: float,
     raise ValueError(f"no plate motion defined for test {test!r}")
 
 
+def plate_at_rest(test: str, preload: float) -> float:
+    """The value of the controlled quantity at which the top plate stands at the unloaded
+    specimen's height (:func:`plate_position`'s axial displacement zero): where a plate
+    that can lift off meets the specimen in compression/tension."""
+    if test != COMPRESSION_TENSION:
+        raise ValueError(f"the plate of test {test!r} does not move axially with its control")
+    return 1.0 - preload
+
+
 def compression_tension(amplitude: float = 0.15, **kw) -> Protocol:
     """1 -> 1 - A -> 1 -> 1 + A -> 1."""
     if not (math.isfinite(amplitude) and 0 < amplitude < 1):

@@ -138,6 +138,12 @@ def library(kind: str) -> dict[str, Effect]:
     return lib
 
 
+def parameter_names(lib: dict, effects, base=BASE_NAMES) -> list[Param]:
+    """The fit parameters of the ``base`` model with ``effects`` of ``lib``: the base's,
+    then each effect's in the order given."""
+    return list(base) + [n for e in effects for n in lib[e].names]
+
+
 def check_effects(names, kind: str) -> None:
     """Refuse candidate names the library of ``kind`` does not have (a misspelt name must
     never be dropped silently)."""

@@ -49,7 +49,7 @@ from brain_fe.parameters import Param
 from simulators.coordinates import NU0
 
 from . import locate as loc
-from .effects import BASE_NAMES, check_effects, library, separating_test
+from .effects import BASE_NAMES, check_effects, library, parameter_names, separating_test
 from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
 from .noise import NoiseModel, estimate_noise, fit_noise
 from .remaining import remaining, systematic_basis
@@ -253,7 +253,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
             # no stop at "nothing systematic remains": the noise model of this fit's
             # residual may take a second effect's smooth misfit for wander; the next
             # round judges every candidate under the noise of its own best fit
-            J = _jacobian(sim, comm, current, _all_names(lib, chosen))
+            J = _jacobian(sim, comm, current, parameter_names(lib, chosen))
         finally:  # every round, the one that stops too
             entry["whole_round"] = round(time.perf_counter() - t_round, 2)
     t_end = time.perf_counter()
@@ -314,8 +314,8 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
             return {}
         try:
             with _sharing(ctx.sim, comm):
-                return detection_limits(ctx.sim, current, _all_names(lib, in_model), J,
-                                        group, nm.whiten_jacobian,
+                return detection_limits(ctx.sim, current, parameter_names(lib, in_model),
+                                        J, group, nm.whiten_jacobian,
                                         lambda eff: ctx.needed(len(eff.names), m), points)
         except Exception as exc:  # a note is not worth a failed diagnosis (nor a compile)
             log.warning("detection limits at the final model: %s: %s",
@@ -466,10 +466,6 @@ def _jacobian(sim, comm, f: Fit, names: list) -> np.ndarray:
         return sim.predict(f.values, names).jacobian
 
 
-def _all_names(lib, effects) -> list:
-    return list(BASE_NAMES) + [n for e in effects for n in lib[e].names]
-
-
 def _complete(ctx: Context, f: Fit, effects: list) -> Fit:
     """Run a fit that the ranking budget cut short to the end."""
     if f.converged:
@@ -521,9 +517,9 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list,
         rest = [c for c in chosen if c != e]
         start = {k: v for k, v in current.values.items() if k not in ctx.lib[e].names}
         try:
-            without = fit(ctx.sim, ctx.obs, ctx.weights, start, _all_names(ctx.lib, rest),
-                          effect="+".join(rest), max_nfev=ctx.max_nfev,
-                          effect_def=_union(ctx, rest))
+            without = fit(ctx.sim, ctx.obs, ctx.weights, start,
+                          parameter_names(ctx.lib, rest), effect="+".join(rest),
+                          max_nfev=ctx.max_nfev, effect_def=_union(ctx, rest))
         except Exception as exc:  # cannot do without it: it stays
             log.warning("re-test without %s failed: %s", e, exc)
             continue

@@ -72,8 +72,7 @@ from simulators.coordinates import model_point
 from simulators.fe import FESimulator
 
 from .benchmark import MAX_SIZE, effect_values
-from .effects import library
-from .engine import _all_names
+from .effects import library, parameter_names
 from .fitting import fit
 from .selection import Union
 
@@ -404,7 +403,7 @@ def misfit_left(spec, truth, times, noise_sd_ch, models, beside: tuple = (),
                           ("sim-models", spec.radius_mm, spec.height_mm), {}))
     sigma = obs["channel"].map(noise_sd_ch).to_numpy(float)
     lib = library(sim.kind)
-    names = _all_names(lib, beside)
+    names = parameter_names(lib, beside)
     given = {Param.parse(k): v for k, v in (start or {}).items()}
     start = {k: given[k] if k in given else truth.values[k] for k in names}
     f = fit(sim, obs, sigma, start, names, max_nfev=30, effect="+".join(beside) or "base",

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
+from .effects import parameter_names
 from .fitting import Fit, fit
 from .screen import design, design_scales, score
 
@@ -87,13 +88,10 @@ class Round:
                                       for e, f in self.fits.items()}}
 
 
-def _names(ctx: Context, effects: list) -> list:
-    return list(ctx.base_names) + [n for e in effects for n in ctx.lib[e].names]
-
-
 def _fit(ctx: Context, start: dict, effects: list, label: str, nfev: int):
     try:
-        return fit(ctx.sim, ctx.obs, ctx.weights, start, _names(ctx, effects), effect=label,
+        return fit(ctx.sim, ctx.obs, ctx.weights, start,
+                   parameter_names(ctx.lib, effects, ctx.base_names), effect=label,
                    max_nfev=nfev, effect_def=Union(ctx.lib, effects))
     except Exception as exc:  # a model that cannot follow the data is reported, not fatal
         log.warning("fit of %s failed: %s", label, exc)
@@ -119,7 +117,7 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
     recorded path of a history model, where a score costs several seconds."""
     obs, sim = ctx.obs, ctx.sim
     t0 = time.perf_counter()
-    names = _names(ctx, current_effects)
+    names = parameter_names(ctx.lib, current_effects, ctx.base_names)
     if first is None:
         scales = design_scales(sim, obs, current.values)
         points = [(e, p) for e in candidates for p in design(ctx.lib[e], sim.nu0, scales)]

@@ -42,7 +42,7 @@ from brain_fe.ends import resolve
 from brain_fe.materials import MaterialModel
 from brain_fe.model import ForwardModel
 from brain_fe.parameters import Param
-from brain_fe.protocols import Protocol
+from brain_fe.protocols import Protocol, plate_at_rest
 from brain_fe.vocabulary import CHANNELS, COMPRESSION_TENSION, NEUTRAL
 from recordings.observations import recorded_paths
 
@@ -221,7 +221,7 @@ def _contact_kink(fm, point, test: str) -> float | None:
     in torsion."""
     if fm.lift_off is None or test != COMPRESSION_TENSION:
         return None
-    kink = NEUTRAL[test] - point.artefacts.stretch_offset
+    kink = plate_at_rest(test, point.artefacts.stretch_offset)
     return NEUTRAL[test] if abs(kink - NEUTRAL[test]) < KINK_SNAP else kink
 
 

@@ -208,7 +208,7 @@ def test_unglued_simulator_follows_the_contact_kink():
 
     from brain_fe.materials import MaterialParameters
     from brain_fe.model import ForwardModel
-    from brain_fe.protocols import Protocol
+    from brain_fe.protocols import Protocol, plate_at_rest, plate_position
     from simulators.fe import FESimulator
 
     offset = 0.004
@@ -231,6 +231,11 @@ def test_unglued_simulator_follows_the_contact_kink():
         .nominal_stress_kPa.iloc[-1] for x in true])
     peak = np.abs(direct).max()
     assert (true >= 1.0).sum() == 1 and (true < 1.0).sum() == len(at) - 1
+    # the kink where the rig's kinematics put the plate at the unloaded height
+    kink = plate_at_rest("compression_tension", offset)
+    assert kink == pytest.approx(1.0 - offset)
+    assert plate_position("compression_tension", kink, offset, 5.0, 4.0)[0] == pytest.approx(
+        0.0, abs=1e-15)
     np.testing.assert_allclose(y, direct, atol=1e-5 * peak)
     np.testing.assert_allclose(y_path, direct, atol=1e-6 * peak)
 
