@@ -53,7 +53,15 @@ from .effects import BASE_NAMES, check_effects, library, parameter_names, separa
 from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
 from .noise import NoiseModel, estimate_noise, fit_noise
 from .remaining import remaining, systematic_basis
-from .screen import AT_DESIGN, design, design_scales, detection_limits, masked_by_model
+from .screen import (
+    AT_DESIGN,
+    IN_COMPLIANCE,
+    LINEAR_AT_NEUTRAL,
+    design,
+    design_scales,
+    detection_limits,
+    masked_by_model,
+)
 from .selection import Context, Union, compare, compatible, run_round
 
 log = logging.getLogger(__name__)
@@ -303,12 +311,14 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
              if e not in in_model and compatible(e, in_model)}
     m = max(len(cands), 1)
     scales = design_scales(ctx.sim, ctx.obs, current.values)
-    points = {e: design(lib[e], ctx.sim.nu0, scales) for e in cands if e in AT_DESIGN}
+    points = {e: design(lib[e], ctx.sim.nu0, scales) for e in cands
+              if e in AT_DESIGN + IN_COMPLIANCE}
 
     # those of compressibility and the offsets first (a final path that cannot be followed
     # fails once), then in their own solve, with a Maxwell branch or Ogden term per design
     # point, those of the effects with a time or an exponent, and the elastic ones alone
-    # if the history of the branches cannot be followed
+    # if the history of the branches cannot be followed; a glue layer in a solve of its
+    # own (interface springs)
     def attempt(group: dict) -> dict | None:
         if not group:
             return {}
@@ -324,12 +334,13 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
 
     at_design = {e: v for e, v in cands.items() if e in AT_DESIGN}
     elastic = {e: v for e, v in at_design.items() if e != "viscoelastic"}
-    limits = attempt({e: v for e, v in cands.items() if e not in AT_DESIGN})
+    limits = attempt({e: v for e, v in cands.items() if e in LINEAR_AT_NEUTRAL})
     if limits is not None:
         more = attempt(at_design)
         if more is None and elastic != at_design:
             more = attempt(elastic)
         limits.update(more or {})
+        limits.update(attempt({e: v for e, v in cands.items() if e in IN_COMPLIANCE}) or {})
     if not limits:
         return {}, []
     masked = [{"effect": e, "beside": sorted(named), "separating_test": " / ".join(

@@ -138,14 +138,22 @@ def _limit_lines(res: dict) -> list[str]:
     if limits:
         lines += ["How large the candidates not named would have to be to show beside the final "
                   "model (linearised at their neutral value, an effect with a time or exponent "
-                  "of its own at each point of the generic design; beyond the bounds: never):",
+                  "of its own at each point of the generic design, a glue layer solved; beyond "
+                  "the bounds: never):",
                   "",
                   "| effect | parameter | from | would show at |", "|---|---|---|---|"]
+        glue = []
         for e, d in limits.items():
             for n, v in d.items():
                 at = ", ".join(f"{x:.4g}" for x in v["would_show_at"]) or "no allowed value"
                 lines.append(f"| {e} | {n} | {v['from']:.4g} | {at} |")
-        lines.append("")
+                if v.get("solved_at") and v["would_show_at"]:
+                    glue.append(f"{e}: a glue layer softer than k = "
+                                f"{10.0 ** v['would_show_at'][0]:.3g} kPa/mm would show "
+                                "(solved with the layer at log10_k = " + ", ".join(
+                                    f"{k:.3g}" for k in v["solved_at"]) + ", not "
+                                "linearised: its misfit is far from linear in 1/k).")
+        lines += [""] + [x for g in glue for x in (g, "")]
     return lines
 
 

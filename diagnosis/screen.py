@@ -176,6 +176,10 @@ LINEAR_AT_NEUTRAL = ("compressibility", "artefacts")
 # design, each point a further term of the same family on a free index (a Maxwell branch,
 # an Ogden term of zero size), so that the same single prediction serves them all
 AT_DESIGN = ("viscoelastic", "ogden_2term")
+# Candidates whose neutral point is at infinity (a glue layer as stiff as glue can be): no
+# derivative at a point says where they show (a glue layer's chi-square grows about as its
+# compliance 1/k); stated from direct solves along their own coordinate (_compliance_limits)
+IN_COMPLIANCE = ("imperfect_gluing",)
 
 
 def design_scales(sim, obs: pd.DataFrame, values: dict) -> dict:
@@ -221,6 +225,14 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
     Jacobian is not finite."""
     points = points or {}
     taken = set(current_names)
+    compliance = {e: eff for e, eff in effects.items()
+                  if e in IN_COMPLIANCE and points.get(e) and not set(eff.names) & taken}
+    if compliance:  # another end condition (interface springs): a prediction of its own
+        out = _compliance_limits(sim, current, current_names, J_current, compliance,
+                                 whiten, needed, points)
+        rest = {e: eff for e, eff in effects.items() if e not in compliance}
+        return {**out, **(detection_limits(sim, current, current_names, J_current, rest,
+                                           whiten, needed, points) if rest else {})}
     linear = {e: eff for e, eff in effects.items()
               if e in LINEAR_AT_NEUTRAL and not set(eff.names) & taken}
     at_design = {e: _term_copies(eff, points[e], current.values)
@@ -248,12 +260,7 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
         J_current, jac = own[:, :len(current_names)], own[:, len(current_names):]
     else:
         jac = sim.predict(point, names).jacobian
-    Jm, Jc = whiten(np.asarray(J_current, float)), whiten(np.asarray(jac, float))
-    if not (np.isfinite(Jm).all() and np.isfinite(Jc).all()):
-        raise ValueError("a Jacobian at the final model is not finite")
-    # an orthonormal basis of the span of J_m: zero and dependent columns add nothing
-    U, sv, _ = np.linalg.svd(Jm, full_matrices=False)
-    U = U[:, sv > sv.max(initial=0.0) * 1e-10]
+    U, Jc = _span_and_columns(J_current, jac, whiten)
     out: dict = {}
     for col, (e, label, n, coord, at) in enumerate(rows):
         bar = math.sqrt(needed(effects[e]))
@@ -269,6 +276,95 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
             "step_alone": bar / alone if alone > 0 else math.inf,
             "would_show_at": show, "within_bounds": bool(show)}
     return out
+
+
+def _span_and_columns(J_current, jac, whiten) -> tuple[np.ndarray, np.ndarray]:
+    """An orthonormal basis of the span of the whitened model columns (zero and dependent
+    columns add nothing) and the whitened candidate columns; ValueError if not finite."""
+    Jm, Jc = whiten(np.asarray(J_current, float)), whiten(np.asarray(jac, float))
+    if not (np.isfinite(Jm).all() and np.isfinite(Jc).all()):
+        raise ValueError("a Jacobian at the final model is not finite")
+    U, sv, _ = np.linalg.svd(Jm, full_matrices=False)
+    return U[:, sv > sv.max(initial=0.0) * 1e-10], Jc
+
+
+def _compliance_limits(sim, current, current_names, J_current, effects: dict, whiten,
+                       needed, points: dict) -> dict:
+    """:func:`detection_limits` of the :data:`IN_COMPLIANCE` effects, by direct solves from
+    the stiffest point of their design (:class:`_GlueScan`).  Stated in log10_k: ``from``
+    its stiffest allowed value, ``would_show_at`` the stiffness below which a layer would
+    show, ``step`` their difference, ``solved_at`` the stiffnesses solved."""
+    U, _ = _span_and_columns(J_current, np.zeros((len(current.prediction), 0)), whiten)
+    out: dict = {}
+    for e, eff in effects.items():
+        (n,) = eff.names
+        lo, hi = eff.bounds(n)
+        scan = _GlueScan(sim, current, n, (lo, hi), U, whiten, needed(eff))
+        shows, shows_alone = scan.limits(max(float(p[str(n)]) for p in points[e]))
+        show = [float(min(shows, hi))] if shows >= lo else []
+        out[e] = {str(n): {"parameter": str(n), "at": {}, "from": hi, "step": hi - shows,
+                           "step_alone": hi - shows_alone, "would_show_at": show,
+                           "within_bounds": bool(show), "solved_at": sorted(scan.solved),
+                           "in": "glue stiffness, solved"}}
+    return out
+
+
+class _GlueScan:
+    """Where a glue layer of stiffness 10^log10_k shows beside the ``current`` model.  Its
+    signature is far from linear in the compliance c = 10^-log10_k near zero (its
+    chi-square grows about as c, not c^2: the interface takes the stress concentration at
+    the glued edge), so no derivative at the neutral point can say where it shows; the
+    logarithm of its chi-square is nearly linear in log10_k, though, and convex.  So:
+    solved with its sensitivity at the design's stiffest point, then Newton steps on
+    log(chi-square) = log(bar) until it is within ``SCAN_TOLERANCE`` of the bar (on a convex
+    curve they approach the stiffness from the soft side, so the stated one shows).  The
+    chi-square counts what the model's parameters cannot mimic (the orthonormal basis ``U``
+    of their whitened columns projected out); alone, all of it."""
+
+    def __init__(self, sim, current, name, bounds, U, whiten, bar2: float):
+        self.sim, self.current, self.name, self.bounds = sim, current, name, bounds
+        self.U, self.whiten, self.bar2 = U, whiten, bar2
+        self.solved: dict = {}  # log10_k -> ((chi2, d chi2/d log10_k) beyond, alone)
+
+    def solve(self, lk: float) -> tuple:
+        lk = float(np.clip(lk, *self.bounds))
+        if lk not in self.solved:
+            p = self.sim.predict({**self.current.values, self.name: lk}, [self.name])
+            zz = self.whiten(np.column_stack([p.y - self.current.prediction, p.jacobian[:, 0]]))
+            if not np.isfinite(zz).all():
+                raise ValueError("a prediction with a glue layer is not finite")
+            U = self.U
+            r = zz - U @ (U.T @ zz)
+            self.solved[lk] = ((float(r[:, 0] @ r[:, 0]), 2.0 * float(r[:, 0] @ r[:, 1])),
+                               (float(zz[:, 0] @ zz[:, 0]), 2.0 * float(zz[:, 0] @ zz[:, 1])))
+        return lk, self.solved[lk]
+
+    def newton(self, lk: float, col: int) -> float:
+        """The Newton step on log(chi-square) - log(bar) from the solved ``lk`` (``col`` 0:
+        beyond the model, 1: alone); -inf when it does not grow as the glue softens."""
+        g, dg = self.solved[lk][col]
+        if g <= 0 or dg >= 0:
+            return -math.inf
+        return lk + (math.log(self.bar2) - math.log(g)) / (dg / g)
+
+    def limits(self, stiffest: float) -> tuple[float, float]:
+        """(log10_k where the layer shows beside the model, where it shows alone: one Newton
+        step from the solved point nearest to it)."""
+        lk = stiffest
+        for _ in range(SCAN_SOLVES):
+            lk, ((g, _), _) = self.solve(lk)
+            if g > 0 and abs(math.log(g / self.bar2)) < math.log(1.0 + SCAN_TOLERANCE):
+                break
+            lk = self.newton(lk, 0)
+            if lk < self.bounds[0] - 1.0:  # a decade softer than any allowed glue (or -inf)
+                break
+        near = min(self.solved, key=lambda k: abs(math.log(
+            max(self.solved[k][1][0], 1e-300) / self.bar2)))
+        return lk, self.newton(near, 1)
+
+
+SCAN_SOLVES = 4  # solves of a glue layer's scan at most
+SCAN_TOLERANCE = 0.1  # a glue layer's stated stiffness: its chi-square within 10 % of the bar
 
 
 def masked_by_model(limit: dict, bounds: tuple[float, float]) -> bool:

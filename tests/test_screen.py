@@ -5,6 +5,7 @@ from __future__ import annotations
 import types
 
 import numpy as np
+import pytest
 
 from brain_fe.parameters import Param
 from diagnosis.screen import MAX_STEP_OF_RANGE, score
@@ -184,6 +185,57 @@ def test_detection_limits_of_effects_with_a_time_or_exponent_of_their_own():
     assert len({v["step"] for v in limits["viscoelastic"].values()}) == 2  # tau matters
 
 
+def test_a_glue_layer_is_stated_where_its_solved_misfit_reaches_the_bar():
+    """Imperfect gluing vanishes at its neutral point (k -> infinity), and its signature is
+    not linear in the compliance c = 1/k there (on the FE model its chi-square grows about
+    as c: BENCHMARKS.md), so it is stated from direct solves.  On a model y = mu a +
+    sqrt(c) g (g partly along a: mu mimics part of it), the stated log10 k is the one whose
+    signature, refitted with mu by least squares, removes exactly the bar (16): a solve
+    with its sensitivity at the design's stiffest point, one more at the Newton estimate
+    (a power law: exact).  A layer the model can mimic entirely (g along a) is masked:
+    alone an allowed glue would show."""
+    from diagnosis.effects import EFFECTS
+    from diagnosis.screen import detection_limits, masked_by_model
+
+    x = np.linspace(0.0, 1.0, 50)
+    a = x
+    K = Param("log10_k")
+    sd = 0.01
+    glue = {"imperfect_gluing": EFFECTS["imperfect_gluing"]}
+    points = {"imperfect_gluing": [{"log10_k": v} for v in (3.0, 1.5, 0.0)]}
+    lo, hi = EFFECTS["imperfect_gluing"].bounds(K)
+    for g, masked in ((x**2 + 0.3 * x, False), (-0.5 * x, True)):
+        seen = []
+
+        def predict(values, names=(), g=g, seen=seen):
+            seen.append(values.get(K))
+            c = 10.0 ** -values[K] if K in values else 0.0
+            d = {MU: a, K: -0.5 * np.log(10.0) * np.sqrt(c) * g}  # d sqrt(c) / d log10_k
+            return types.SimpleNamespace(y=values[MU] * a + np.sqrt(c) * g,
+                                         jacobian=np.column_stack([d[q] for q in names])
+                                         if names else None)
+
+        sim = types.SimpleNamespace(nu0=0.49, predict=predict)
+        current = types.SimpleNamespace(values={MU: 2.0}, prediction=predict({MU: 2.0}).y)
+        seen.clear()
+        v = detection_limits(sim, current, [MU], a[:, None], glue, lambda J: J / sd,
+                             lambda eff: 16.0, points)["imperfect_gluing"]["log10_k"]
+        assert v["from"] == hi and v["parameter"] == "log10_k"
+        assert seen[0] == 3.0 and v["solved_at"] == sorted(set(seen))
+        assert masked_by_model(v, (lo, hi)) is masked
+        alone = 10.0 ** -(hi - v["step_alone"])  # beside nothing
+        assert np.sum((np.sqrt(alone) * g / sd) ** 2) == pytest.approx(16.0, rel=1e-9)
+        if masked:
+            assert v["would_show_at"] == [] and not v["within_bounds"]
+            continue
+        assert len(seen) == 2  # a power law: one Newton step is exact
+        (k_shows,) = v["would_show_at"]
+        assert v["step"] == pytest.approx(hi - k_shows)
+        data = 2.0 * a + np.sqrt(10.0 ** -k_shows) * g  # a glue that stiff, refitted with mu
+        (m,), *_ = np.linalg.lstsq(a[:, None], data, rcond=None)
+        assert np.sum(((data - m * a) / sd) ** 2) == pytest.approx(16.0, rel=1e-9)
+
+
 def test_compressibility_is_told_apart_by_the_lateral_expansion():
     """Compressibility masked by any other effect: the separating test named is the lateral
     expansion, the one quantity only compressibility changes; a pair of the table keeps its
@@ -198,9 +250,10 @@ def test_compressibility_is_told_apart_by_the_lateral_expansion():
 
 def test_limits_survive_a_history_that_cannot_be_followed(caplog):
     """engine._limits: compressibility and the offsets first (the fit's Jacobian), then the
-    effects with design points in their own solve; when the Maxwell branches' history
-    cannot be followed the elastic second Ogden term is still stated, the failure logged,
-    the diagnosis not failed; when the final path itself fails, nothing is stated."""
+    effects with design points in their own solve, then a glue layer in solves of its own;
+    when the Maxwell branches' history cannot be followed the elastic second Ogden term is
+    still stated, the failure logged, the diagnosis not failed; when the final path itself
+    fails, nothing is stated."""
     import logging
 
     import pandas as pd
@@ -218,16 +271,21 @@ def test_limits_survive_a_history_that_cannot_be_followed(caplog):
                         "value": 0.0})
     calls = []
 
+    K = Param("log10_k")
+
     def predict(values, names, fail=None):
         calls.append([str(q) for q in names])
         if fail is not None and fail(names):
             raise RuntimeError("Newton failed")
-        return types.SimpleNamespace(y=None, jacobian=np.column_stack(
-            [x ** (1.0 + 0.1 * k) for k in range(len(names))]))
+        glue = np.sqrt(10.0 ** -values[K]) * x**3 if K in values else np.zeros(n)
+        return types.SimpleNamespace(y=glue, jacobian=np.column_stack(
+            [-0.5 * np.log(10.0) * glue if q == K else x ** (1.0 + 0.1 * k)
+             for k, q in enumerate(names)]))
 
     lib = {e: EFFECTS[e] for e in ("compressibility", "artefacts", "viscoelastic",
-                                   "ogden_2term")}
-    current = types.SimpleNamespace(values={MU: 1.0, Param("alpha", 0): -10.0})
+                                   "ogden_2term", "imperfect_gluing")}
+    current = types.SimpleNamespace(values={MU: 1.0, Param("alpha", 0): -10.0},
+                                    prediction=np.zeros(n))
     nm = types.SimpleNamespace(whiten_jacobian=lambda J: J / 0.01)
 
     def run(fail):
@@ -238,8 +296,10 @@ def test_limits_survive_a_history_that_cannot_be_followed(caplog):
 
     with caplog.at_level(logging.WARNING, logger="diagnosis.engine"):
         limits, masked = run(lambda q: any(p.family == "beta" for p in q))
-    assert set(limits) == {"compressibility", "artefacts", "ogden_2term"}
-    assert len(limits["ogden_2term"]) == 4 and len(calls) == 3
+    assert set(limits) == {"compressibility", "artefacts", "ogden_2term", "imperfect_gluing"}
+    assert len(limits["ogden_2term"]) == 4
+    glue = limits["imperfect_gluing"]["log10_k"]  # in its own solves (interface springs)
+    assert len(calls) == 3 + len(glue["solved_at"]) and glue["within_bounds"]
     assert "Newton failed" in caplog.text
     limits, _ = run(lambda q: True)  # the final path itself
     assert limits == {} and len(calls) == 1
