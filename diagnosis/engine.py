@@ -188,14 +188,19 @@ def _plain(d: dict) -> dict:
     return {str(k): float(v) for k, v in d.items()}
 
 
-def _share_with(comm):
+def _share_with(comm, sim=None):
     def share(items, work, cost):
         """``work`` on the ``items``, most expensive first (by the estimated ``cost``),
         each taken by whichever rank of ``comm`` is free; every rank gets every result,
-        in the order of ``items``."""
+        in the order of ``items``.  A lone item (a round with one candidate left) is
+        worked on by all ranks together, each solving its share of ``sim``'s curves
+        (every solve starts afresh, so the result is the same as on one rank)."""
         order = sorted(range(len(items)), key=lambda i: -cost(items[i]))
         if comm is None or comm.size == 1:
             done = [(i, work(items[i])) for i in order]
+        elif len(items) == 1 and hasattr(sim, "sharing"):
+            with _sharing(sim, comm):
+                return [work(items[0])]
         else:
             counter = SharedCounter(comm)
             done = [(i, work(items[i])) for i in dynamic_items(order, counter)]
@@ -222,7 +227,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         progress("base")
     lib = library(sim.kind)
     ctx = Context(sim, obs, weights, lib, list(BASE_NAMES), alpha, bic_margin, max_nfev,
-                  _share_with(comm), noise)
+                  _share_with(comm, sim), noise)
     rounds, current, chosen, J = [], base, [], J_base
     ambiguous, notes = [], []
     while len(chosen) < max_effects:
@@ -253,10 +258,11 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                            - sig[0]["delta_bic"], "separating_test": separating_test(
                                added, r["effect"])} for r in sig[1:]
                           if r["delta_bic"] - sig[0]["delta_bic"] < bic_margin]
-            new = _complete(ctx, rnd.fits[added], [*chosen, added])
-            rnd.added = added
-            chosen = [*chosen, added]
-            current, chosen, dropped = _retest(ctx, new, chosen, rnd.noise)
+            with _sharing(sim, comm):  # one fit at a time: the ranks share its curves
+                new = _complete(ctx, rnd.fits[added], [*chosen, added])
+                rnd.added = added
+                chosen = [*chosen, added]
+                current, chosen, dropped = _retest(ctx, new, chosen, rnd.noise)
             rnd.dropped = dropped
             # no stop at "nothing systematic remains": the noise model of this fit's
             # residual may take a second effect's smooth misfit for wander; the next
