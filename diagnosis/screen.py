@@ -314,12 +314,11 @@ class _GlueScan:
     signature is far from linear in the compliance c = 10^-log10_k near zero (its
     chi-square grows about as c, not c^2: the interface takes the stress concentration at
     the glued edge), so no derivative at the neutral point can say where it shows; the
-    logarithm of its chi-square is nearly linear in log10_k, though, and convex.  So:
-    solved with its sensitivity at the design's stiffest point, then Newton steps on
-    log(chi-square) = log(bar) until it is within ``SCAN_TOLERANCE`` of the bar (on a convex
-    curve they approach the stiffness from the soft side, so the stated one shows).  The
-    chi-square counts what the model's parameters cannot mimic (the orthonormal basis ``U``
-    of their whitened columns projected out); alone, all of it."""
+    logarithm of its chi-square is nearly linear in log10_k, though.  So: solved with its
+    sensitivity at the design's stiffest point, then Newton steps on log(chi-square) =
+    log(bar) until the chi-square at the step is within ``SCAN_TOLERANCE`` of the bar, on
+    either side.  The chi-square counts what the model's parameters cannot mimic (the
+    orthonormal basis ``U`` of their whitened columns projected out); alone, all of it."""
 
     def __init__(self, sim, current, name, bounds, U, whiten, bar2: float):
         self.sim, self.current, self.name, self.bounds = sim, current, name, bounds
