@@ -349,13 +349,18 @@ class _GlueScan:
     def limits(self, stiffest: float) -> tuple[float, float]:
         """(log10_k where the layer shows beside the model, where it shows alone: one Newton
         step from the solved point nearest to it)."""
+        lo, hi = self.bounds
         lk = stiffest
         for _ in range(SCAN_SOLVES):
-            lk, ((g, _), _) = self.solve(lk)
+            at, ((g, _), _) = self.solve(lk)  # beyond the bounds: solved at the bound
             if g > 0 and abs(math.log(g / self.bar2)) < math.log(1.0 + SCAN_TOLERANCE):
+                lk = at
                 break
-            lk = self.newton(lk, 0)
-            if lk < self.bounds[0] - 1.0:  # a decade softer than any allowed glue (or -inf)
+            lk = self.newton(at, 0)
+            # the softest allowed glue solved and not showing (or the stiffest showing):
+            # no allowed value is stated on an extrapolation alone
+            if (at == lo and g < self.bar2 and lk <= at) or (at == hi and g > self.bar2
+                                                              and lk >= at):
                 break
         near = min(self.solved, key=lambda k: abs(math.log(
             max(self.solved[k][1][0], 1e-300) / self.bar2)))

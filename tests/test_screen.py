@@ -225,8 +225,9 @@ def test_a_glue_layer_is_stated_where_its_solved_misfit_reaches_the_bar():
         assert masked_by_model(v, (lo, hi)) is masked
         alone = 10.0 ** -(hi - v["step_alone"])  # beside nothing
         assert np.sum((np.sqrt(alone) * g / sd) ** 2) == pytest.approx(16.0, rel=1e-9)
-        if masked:
+        if masked:  # "no allowed value" only after solving the softest allowed glue
             assert v["would_show_at"] == [] and not v["within_bounds"]
+            assert lo in v["solved_at"]
             continue
         assert len(seen) == 2  # a power law: one Newton step is exact
         (k_shows,) = v["would_show_at"]
