@@ -304,3 +304,24 @@ def test_limits_survive_a_history_that_cannot_be_followed(caplog):
     assert "Newton failed" in caplog.text
     limits, _ = run(lambda q: True)  # the final path itself
     assert limits == {} and len(calls) == 1
+
+
+def test_the_report_states_the_limits_and_what_is_masked():
+    """report.md's limits: one row per stated parameter, 'no allowed value' where none
+    would show, a line naming the glue stiffness below which a layer would show, and the
+    masked candidates with the test that would tell."""
+    from diagnosis.report import _limit_lines
+
+    res = {"masked": [{"effect": "imperfect_gluing", "beside": ["artefacts"],
+                       "separating_test": "a re-zeroed repeat test"}],
+           "detection_limits": {
+               "compressibility": {"nu0": {"from": 0.49, "would_show_at": [0.401]}},
+               "imperfect_gluing": {"log10_k": {"from": 4.0, "would_show_at": [1.0],
+                                                "solved_at": [1.0, 1.1, 2.07]}},
+               "ogden_2term": {"mu_1 at alpha_1 = 5": {"from": 0.0, "would_show_at": []}}}}
+    text = "\n".join(_limit_lines(res))
+    assert "**Cannot tell whether imperfect_gluing is also present**: beside artefacts" in text
+    assert "| compressibility | nu0 | 0.49 | 0.401 |" in text
+    assert "| ogden_2term | mu_1 at alpha_1 = 5 | 0 | no allowed value |" in text
+    assert "a glue layer softer than k = 10 kPa/mm would show" in text
+    assert "log10_k = 1, 1.1, 2.07" in text
