@@ -198,7 +198,7 @@ def _share_with(comm, sim=None):
         order = sorted(range(len(items)), key=lambda i: -cost(items[i]))
         if comm is None or comm.size == 1:
             done = [(i, work(items[i])) for i in order]
-        elif len(items) == 1 and hasattr(sim, "sharing"):
+        elif len(items) == 1:
             with _sharing(sim, comm):
                 return [work(items[0])]
         else:

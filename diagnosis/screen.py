@@ -227,19 +227,16 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
     taken = set(current_names)
     compliance = {e: eff for e, eff in effects.items()
                   if e in IN_COMPLIANCE and points.get(e) and not set(eff.names) & taken}
-    if compliance:  # another end condition (interface springs): a prediction of its own
-        out = _compliance_limits(sim, current, current_names, J_current, compliance,
-                                 whiten, needed, points)
-        rest = {e: eff for e, eff in effects.items() if e not in compliance}
-        return {**out, **(detection_limits(sim, current, current_names, J_current, rest,
-                                           whiten, needed, points) if rest else {})}
+    # another end condition (interface springs): solves of their own
+    out = _compliance_limits(sim, current, J_current, compliance, whiten, needed,
+                             points) if compliance else {}
     linear = {e: eff for e, eff in effects.items()
               if e in LINEAR_AT_NEUTRAL and not set(eff.names) & taken}
     at_design = {e: _term_copies(eff, points[e], current.values)
                  for e, eff in effects.items()
                  if e in AT_DESIGN and points.get(e) and not set(eff.names) & taken}
     if not linear and not at_design:
-        return {}
+        return out
     values = {n: (sim.nu0 if str(n) == "nu0" else 0.0) for eff in linear.values()
               for n in eff.names}
     # (effect, label, parameter as the effect names it, coordinate predicted, "at")
@@ -260,8 +257,9 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
         J_current, jac = own[:, :len(current_names)], own[:, len(current_names):]
     else:
         jac = sim.predict(point, names).jacobian
-    U, Jc = _span_and_columns(J_current, jac, whiten)
-    out: dict = {}
+    U, Jc = _span(J_current, whiten), whiten(np.asarray(jac, float))
+    if not np.isfinite(Jc).all():
+        raise ValueError("a Jacobian at the final model is not finite")
     for col, (e, label, n, coord, at) in enumerate(rows):
         bar = math.sqrt(needed(effects[e]))
         j = Jc[:, col]
@@ -278,23 +276,23 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
     return out
 
 
-def _span_and_columns(J_current, jac, whiten) -> tuple[np.ndarray, np.ndarray]:
+def _span(J_current, whiten) -> np.ndarray:
     """An orthonormal basis of the span of the whitened model columns (zero and dependent
-    columns add nothing) and the whitened candidate columns; ValueError if not finite."""
-    Jm, Jc = whiten(np.asarray(J_current, float)), whiten(np.asarray(jac, float))
-    if not (np.isfinite(Jm).all() and np.isfinite(Jc).all()):
+    columns add nothing); ValueError if they are not finite."""
+    Jm = whiten(np.asarray(J_current, float))
+    if not np.isfinite(Jm).all():
         raise ValueError("a Jacobian at the final model is not finite")
     U, sv, _ = np.linalg.svd(Jm, full_matrices=False)
-    return U[:, sv > sv.max(initial=0.0) * 1e-10], Jc
+    return U[:, sv > sv.max(initial=0.0) * 1e-10]
 
 
-def _compliance_limits(sim, current, current_names, J_current, effects: dict, whiten,
-                       needed, points: dict) -> dict:
+def _compliance_limits(sim, current, J_current, effects: dict, whiten, needed,
+                       points: dict) -> dict:
     """:func:`detection_limits` of the :data:`IN_COMPLIANCE` effects, by direct solves from
     the stiffest point of their design (:class:`_GlueScan`).  Stated in log10_k: ``from``
     its stiffest allowed value, ``would_show_at`` the stiffness below which a layer would
     show, ``step`` their difference, ``solved_at`` the stiffnesses solved."""
-    U, _ = _span_and_columns(J_current, np.zeros((len(current.prediction), 0)), whiten)
+    U = _span(J_current, whiten)
     out: dict = {}
     for e, eff in effects.items():
         (n,) = eff.names
