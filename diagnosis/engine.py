@@ -57,12 +57,14 @@ from .screen import (
     AT_DESIGN,
     IN_COMPLIANCE,
     LINEAR_AT_NEUTRAL,
+    PER_POINT,
+    SCAN_SOLVES,
     design,
     design_scales,
     detection_limits,
     masked_by_model,
 )
-from .selection import Context, Union, compare, compatible, run_round
+from .selection import ALPHA, BIC_MARGIN, Context, Union, compare, compatible, run_round
 
 log = logging.getLogger(__name__)
 
@@ -210,8 +212,8 @@ def _share_with(comm, sim=None):
     return share
 
 
-def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: float = 1e-3,
-             bic_margin: float = 10.0, max_nfev: int = 15, comm=None, progress=None,
+def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: float = ALPHA,
+             bic_margin: float = BIC_MARGIN, max_nfev: int = 15, comm=None, progress=None,
              noise: dict | None = None, max_effects: int = MAX_EFFECTS) -> Diagnosis:
     """Diagnose one specimen.  ``sim``/``fine_sim``: simulators on the working mesh and on
     the next finer one (None: no discretisation correction, e.g. analytical models);
@@ -318,35 +320,46 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
     m = max(len(cands), 1)
     scales = design_scales(ctx.sim, ctx.obs, current.values)
     points = {e: design(lib[e], ctx.sim.nu0, scales) for e in cands
-              if e in AT_DESIGN + IN_COMPLIANCE}
+              if e in AT_DESIGN + PER_POINT + IN_COMPLIANCE}
 
-    # those of compressibility and the offsets first (a final path that cannot be followed
-    # fails once), then in their own solve, with a Maxwell branch or Ogden term per design
-    # point, those of the effects with a time or an exponent, and the elastic ones alone
-    # if the history of the branches cannot be followed; a glue layer in a solve of its
-    # own (interface springs)
-    def attempt(group: dict) -> dict | None:
+    # compressibility and the offsets (a final path that cannot be followed fails there
+    # first), the effects with a time or an exponent (a Maxwell branch or Ogden term per
+    # design point, in one prediction), a softening (one per model) at each design point
+    # and a glue layer (interface springs): independent solves, each group on whichever
+    # rank is free; the elastic ones alone again if the branches' history cannot be
+    # followed
+    def attempt(group: dict, pts=points) -> dict | None:
         if not group:
             return {}
         try:
-            with _sharing(ctx.sim, comm):
-                return detection_limits(ctx.sim, current, parameter_names(lib, in_model),
-                                        J, group, nm.whiten_jacobian,
-                                        lambda eff: ctx.needed(len(eff.names), m), points)
+            return detection_limits(ctx.sim, current, parameter_names(lib, in_model), J,
+                                    group, nm.whiten_jacobian,
+                                    lambda eff: ctx.needed(len(eff.names), m), pts)
         except Exception as exc:  # a note is not worth a failed diagnosis (nor a compile)
             log.warning("detection limits at the final model: %s: %s",
                         type(exc).__name__, exc)
             return None
 
-    at_design = {e: v for e, v in cands.items() if e in AT_DESIGN}
-    elastic = {e: v for e, v in at_design.items() if e != "viscoelastic"}
-    limits = attempt({e: v for e, v in cands.items() if e in LINEAR_AT_NEUTRAL})
-    if limits is not None:
-        more = attempt(at_design)
-        if more is None and elastic != at_design:
-            more = attempt(elastic)
-        limits.update(more or {})
-        limits.update(attempt({e: v for e, v in cands.items() if e in IN_COMPLIANCE}) or {})
+    def kind(k):
+        return {e: v for e, v in cands.items() if e in k}
+
+    at_design = kind(AT_DESIGN)
+    groups = [(kind(LINEAR_AT_NEUTRAL), points), (at_design, points)]
+    groups += [({e: v}, {e: [p]}) for e, v in kind(PER_POINT).items() for p in points[e]]
+    groups += [(kind(IN_COMPLIANCE), points)]
+    solves = {**dict.fromkeys(AT_DESIGN, 2.0), **dict.fromkeys(IN_COMPLIANCE, SCAN_SOLVES)}
+    found = ctx.share(groups, lambda g: attempt(*g),
+                      lambda g: max([solves.get(e, 1.0) for e in g[0]], default=0.0))
+    limits = None
+    if found[0] is not None:
+        limits = {}
+        elastic = {e: v for e, v in at_design.items() if e != "viscoelastic"}
+        if found[1] is None and elastic != at_design:
+            with _sharing(ctx.sim, comm):
+                found[1] = attempt(elastic)
+        for part in found:  # in the order of the groups, a softening's points in turn
+            for e, d in (part or {}).items():
+                limits.setdefault(e, {}).update(d)
     if not limits:
         return {}, []
     masked = [{"effect": e, "beside": sorted(named), "separating_test": " / ".join(

@@ -176,6 +176,10 @@ LINEAR_AT_NEUTRAL = ("compressibility", "artefacts")
 # design, each point a further term of the same family on a free index (a Maxwell branch,
 # an Ogden term of zero size), so that the same single prediction serves them all
 AT_DESIGN = ("viscoelastic", "ogden_2term")
+# Candidates like those AT_DESIGN but with no free term index (one Ogden-Roxburgh
+# softening per model): one prediction per design point; with the amplitude at zero its
+# path is the final fit's, so only the amplitude's column is new
+PER_POINT = ("mullins",)
 # Candidates whose neutral point is at infinity (a glue layer as stiff as glue can be): no
 # derivative at a point says where they show (a glue layer's chi-square grows about as its
 # compliance 1/k); stated from direct solves along their own coordinate (_compliance_limits)
@@ -208,14 +212,16 @@ def _term_copies(effect, points: list[dict], values) -> tuple[Param, Param, list
 def detection_limits(sim, current, current_names, J_current: np.ndarray, effects: dict,
                      whiten, needed, points: dict | None = None) -> dict:
     """How large each candidate of ``effects`` (of :data:`LINEAR_AT_NEUTRAL` and, with
-    their design ``points`` ({effect: [point, ...]}), of :data:`AT_DESIGN`; not in the
+    their design ``points`` ({effect: [point, ...]}), of :data:`AT_DESIGN`,
+    :data:`PER_POINT` and :data:`IN_COMPLIANCE` (solved: :func:`_compliance_limits`); not in the
     ``current`` model) would have to be to earn its place beside the current model, one
     parameter at a time, linearised at its neutral point: with the whitened Jacobians J_m
     of the current model and j of the parameter, the smallest step that removes
     ``needed(effect)`` of chi-square is sqrt(needed) / ||(I - P_{J_m}) j||.  What the
     current parameters can mimic does not count: an effect the named ones mask has a large
     limit, beyond its bounds when no allowed value would show.  An effect with a nuisance
-    parameter has one limit of its amplitude per design point (tau, alpha_1 held there).
+    parameter has one limit of its amplitude per design point (tau, alpha_1, the softening
+    scale m held there; :data:`PER_POINT` effects one prediction per point).
     ``whiten``: the noise model's whitening of Jacobian columns (``J_current``, the final
     fit's, serves the effects without design points; with them, the model's columns come
     from the same prediction).  Returns {effect: {label:
@@ -225,16 +231,21 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
     Jacobian is not finite."""
     points = points or {}
     taken = set(current_names)
-    compliance = {e: eff for e, eff in effects.items()
-                  if e in IN_COMPLIANCE and points.get(e) and not set(eff.names) & taken}
+
+    def free(kind):  # the candidates of a kind that can be stated here
+        return {e: eff for e, eff in effects.items() if e in kind and not set(eff.names) & taken
+                and (kind is LINEAR_AT_NEUTRAL or points.get(e))}
+
+    compliance = free(IN_COMPLIANCE)
     # another end condition (interface springs): solves of their own
     out = _compliance_limits(sim, current, J_current, compliance, whiten, needed,
                              points) if compliance else {}
-    linear = {e: eff for e, eff in effects.items()
-              if e in LINEAR_AT_NEUTRAL and not set(eff.names) & taken}
+    for e, eff in free(PER_POINT).items():
+        out[e] = _per_point_limits(sim, current, current_names, J_current, eff, points[e],
+                                   whiten, needed(eff))
+    linear = free(LINEAR_AT_NEUTRAL)
     at_design = {e: _term_copies(eff, points[e], current.values)
-                 for e, eff in effects.items()
-                 if e in AT_DESIGN and points.get(e) and not set(eff.names) & taken}
+                 for e, eff in free(AT_DESIGN).items()}
     if not linear and not at_design:
         return out
     values = {n: (sim.nu0 if str(n) == "nu0" else 0.0) for eff in linear.values()
@@ -244,11 +255,7 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
     for e, (amp, nuis, copies) in at_design.items():
         for coords, a, q in copies:
             values.update(coords)
-            at = {str(nuis): coords[q]}
-            shown = (f"{str(nuis).removeprefix('log10_')} = {10.0 ** coords[q]:.3g}"
-                     if nuis.family.startswith("log10_") else f"{nuis} = {coords[q]:.3g}")
-            shown += " s" if nuis.family == "log10_tau" else ""
-            rows.append((e, f"{amp} at {shown}", amp, a, at))
+            rows.append((e, _at_label(amp, nuis, coords[q]), amp, a, {str(nuis): coords[q]}))
     names = [r[3] for r in rows]
     point = {**current.values, **values}
     if at_design:  # further terms (a Maxwell branch brings the history along) put the
@@ -261,18 +268,58 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
     if not np.isfinite(Jc).all():
         raise ValueError("a Jacobian at the final model is not finite")
     for col, (e, label, n, coord, at) in enumerate(rows):
-        bar = math.sqrt(needed(effects[e]))
-        j = Jc[:, col]
-        left = float(np.linalg.norm(j - U @ (U.T @ j)))
-        alone = float(np.linalg.norm(j))
-        lo, hi = effects[e].bounds(n)
-        x0 = values[coord]
-        step = bar / left if left > 0 else math.inf
-        show = [x for x in (x0 - step, x0 + step) if lo <= x <= hi]
-        out.setdefault(e, {})[label] = {
-            "parameter": str(n), "at": at, "from": x0, "step": step,
+        out.setdefault(e, {})[label] = _limit(Jc[:, col], U, math.sqrt(needed(effects[e])),
+                                              n, values[coord], effects[e].bounds(n), at)
+    return out
+
+
+def _at_label(amp: Param, nuis: Param, x: float) -> str:
+    """The label of an amplitude's limit at a design point of its nuisance parameter."""
+    unit = {"log10_tau": " s", "log10_softening_m": " kPa"}.get(nuis.family, "")
+    shown = (f"{str(nuis).removeprefix('log10_')} = {10.0 ** x:.3g}"
+             if nuis.family.startswith("log10_") else f"{nuis} = {x:.3g}")
+    return f"{amp} at {shown}{unit}"
+
+
+def _limit(j: np.ndarray, U: np.ndarray, bar: float, n, x0: float, bounds: tuple,
+           at: dict) -> dict:
+    """One entry of :func:`detection_limits`: the whitened column ``j`` of parameter ``n``
+    at ``x0``, the model's span ``U``, the square root of the chi-square ``bar``."""
+    lo, hi = bounds
+    left = float(np.linalg.norm(j - U @ (U.T @ j)))
+    alone = float(np.linalg.norm(j))
+    step = bar / left if left > 0 else math.inf
+    show = [x for x in (x0 - step, x0 + step) if lo <= x <= hi]
+    return {"parameter": str(n), "at": at, "from": x0, "step": step,
             "step_alone": bar / alone if alone > 0 else math.inf,
             "would_show_at": show, "within_bounds": bool(show)}
+
+
+def _per_point_limits(sim, current, current_names, J_current, effect, points: list[dict],
+                      whiten, bar2: float) -> dict:
+    """:func:`detection_limits` of a :data:`PER_POINT` effect: its amplitude at zero and
+    its nuisance parameter at each design point, one prediction each with the amplitude's
+    column (and the model's columns too when the prediction leaves the final fit's path,
+    as a softening switched on may change the load steps of an elastic model)."""
+    (amp,) = [n for n in effect.names if n not in NUISANCE]
+    (nuis,) = [n for n in effect.names if n in NUISANCE]
+    out = {}
+    for pt in points:
+        x = float(pt[str(nuis)])
+        values = {**current.values, amp: 0.0, nuis: x}
+        pred = sim.predict(values, [amp])
+        moved = whiten((pred.y - current.prediction)[:, None])
+        if np.all(np.abs(moved) < 1e-6):
+            jm, j = J_current, pred.jacobian
+        else:
+            own = sim.predict(values, list(current_names) + [amp]).jacobian
+            jm, j = own[:, :-1], own[:, -1:]
+        Jc = whiten(np.asarray(j, float))
+        if not np.isfinite(Jc).all():
+            raise ValueError("a Jacobian at the final model is not finite")
+        out[_at_label(amp, nuis, x)] = _limit(Jc[:, 0], _span(jm, whiten),
+                                              math.sqrt(bar2), amp, 0.0,
+                                              effect.bounds(amp), {str(nuis): x})
     return out
 
 

@@ -40,6 +40,15 @@ HISTORY_COST = 4.0
 RANKING_NFEV = 8  # evaluations of a competitor's fit (the leader's fit is then completed)
 # Effects that cannot be combined (they model the same parameters)
 EXCLUSIVE = {frozenset({"artefacts", "glued_ends"})}
+ALPHA = 1e-3  # significance level of an effect (Bonferroni over the round's candidates)
+BIC_MARGIN = 10.0  # and the BIC improvement it must bring
+
+
+def chi2_needed(k: int, m: int, n: int, alpha: float = ALPHA,
+                bic_margin: float = BIC_MARGIN) -> float:
+    """The chi-square reduction k extra parameters need to be significant among m
+    candidates with n observations: p < alpha / m and a BIC gain above the margin."""
+    return max(float(stats.chi2.isf(alpha / m, k)), k * math.log(n) + bic_margin)
 
 
 @dataclass
@@ -63,8 +72,7 @@ class Context:
 
     def needed(self, k: int, m: int) -> float:
         """The chi-square reduction k extra parameters need to be significant."""
-        return max(float(stats.chi2.isf(self.alpha / m, k)),
-                   k * math.log(len(self.obs)) + self.bic_margin)
+        return chi2_needed(k, m, len(self.obs), self.alpha, self.bic_margin)
 
 
 @dataclass

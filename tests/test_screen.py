@@ -185,6 +185,54 @@ def test_detection_limits_of_effects_with_a_time_or_exponent_of_their_own():
     assert len({v["step"] for v in limits["viscoelastic"].values()}) == 2  # tau matters
 
 
+def test_a_softening_is_stated_at_each_design_point_in_a_solve_of_its_own():
+    """A softening (Mullins) acts at d = 0 only through its energy scale m, like tau and
+    alpha_1, but a model holds one softening, so no free index takes further copies: one
+    prediction per design point.  With d = 0 the path is the final fit's, so only d's
+    column is predicted and the final fit's Jacobian serves for the model; where the
+    prediction leaves that path (an elastic model's load steps change once a history is
+    switched on) the model's columns come from the same prediction.  On a linear model
+    whose softening column depends on m, every stated d is the one whose signature,
+    refitted with mu by least squares, removes exactly the bar (16)."""
+    from diagnosis.effects import EFFECTS
+    from diagnosis.screen import PER_POINT, detection_limits
+
+    assert "mullins" in PER_POINT
+    x = np.linspace(0.0, 1.0, 60)
+    D, M = Param("softening"), Param("log10_softening_m")
+    sd = 0.01
+    points = {"mullins": [{"softening": 0.0, "log10_softening_m": v} for v in (-3.0, -1.0)]}
+    for path_moves in (False, True):
+        calls = []
+
+        def predict(values, names, path_moves=path_moves, calls=calls):
+            calls.append([str(q) for q in names])
+            mu_col = x * (1.1 if path_moves and M in values else 1.0)
+            d_col = -np.tanh(x / 10.0 ** (values[M] + 2.0)) * x  # d sigma / d d at d = 0
+            cols = {MU: mu_col, D: d_col}
+            return types.SimpleNamespace(
+                y=values[MU] * mu_col + values.get(D, 0.0) * d_col,
+                jacobian=np.column_stack([cols[q] for q in names]))
+
+        sim = types.SimpleNamespace(nu0=0.49, predict=predict)
+        current = types.SimpleNamespace(values={MU: 2.0}, prediction=2.0 * x)
+        limits = detection_limits(sim, current, [MU], x[:, None],
+                                  {"mullins": EFFECTS["mullins"]}, lambda J: J / sd,
+                                  lambda eff: 16.0, points)["mullins"]
+        own = [["softening"], ["mu_0", "softening"]] if path_moves else [["softening"]]
+        assert calls == own * 2  # one prediction per design point (and the model's columns)
+        assert len(limits) == 2 and len({v["step"] for v in limits.values()}) == 2
+        for v in limits.values():
+            assert v["parameter"] == "softening" and v["from"] == 0.0
+            m = v["at"]["log10_softening_m"]
+            mu_col = x * (1.1 if path_moves else 1.0)
+            sig = v["step"] * -np.tanh(x / 10.0 ** (m + 2.0)) * x
+            (c,), *_ = np.linalg.lstsq(mu_col[:, None], sig, rcond=None)
+            assert np.sum(((sig - c * mu_col) / sd) ** 2) == pytest.approx(16.0, rel=1e-9)
+            assert v["would_show_at"] == [v["step"]]  # d >= 0 only
+            assert v["step_alone"] == pytest.approx(4.0 / np.linalg.norm(sig / v["step"] / sd))
+
+
 def test_a_glue_layer_is_stated_where_its_solved_misfit_reaches_the_bar():
     """Imperfect gluing vanishes at its neutral point (k -> infinity), and its signature is
     not linear in the compliance c = 1/k there (on the FE model its chi-square grows about
@@ -254,13 +302,13 @@ def test_limits_survive_a_history_that_cannot_be_followed(caplog):
     effects with design points in their own solve, then a glue layer in solves of its own;
     when the Maxwell branches' history cannot be followed the elastic second Ogden term is
     still stated, the failure logged, the diagnosis not failed; when the final path itself
-    fails, nothing is stated."""
+    fails, nothing is stated (the groups are independent solves, shared among ranks)."""
     import logging
 
     import pandas as pd
 
     from diagnosis.effects import EFFECTS
-    from diagnosis.engine import _limits
+    from diagnosis.engine import _limits, _share_with
     from diagnosis.selection import Context
 
     n = 40
@@ -284,26 +332,30 @@ def test_limits_survive_a_history_that_cannot_be_followed(caplog):
              for k, q in enumerate(names)]))
 
     lib = {e: EFFECTS[e] for e in ("compressibility", "artefacts", "viscoelastic",
-                                   "ogden_2term", "imperfect_gluing")}
+                                   "ogden_2term", "mullins", "imperfect_gluing")}
     current = types.SimpleNamespace(values={MU: 1.0, Param("alpha", 0): -10.0},
                                     prediction=np.zeros(n))
     nm = types.SimpleNamespace(whiten_jacobian=lambda J: J / 0.01)
 
     def run(fail):
         sim = types.SimpleNamespace(nu0=0.49, predict=lambda v, q: predict(v, q, fail))
-        ctx = Context(sim, obs, np.ones(n), lib, [MU], 1e-3, 10.0, 40, None)
+        ctx = Context(sim, obs, np.ones(n), lib, [MU], 1e-3, 10.0, 40, _share_with(None))
         calls.clear()
         return _limits(ctx, None, current, [], [], x[:, None], nm, None)
 
     with caplog.at_level(logging.WARNING, logger="diagnosis.engine"):
         limits, masked = run(lambda q: any(p.family == "beta" for p in q))
-    assert set(limits) == {"compressibility", "artefacts", "ogden_2term", "imperfect_gluing"}
+    assert set(limits) == {"compressibility", "artefacts", "ogden_2term", "mullins",
+                           "imperfect_gluing"}
     assert len(limits["ogden_2term"]) == 4
+    assert len(limits["mullins"]) == 3  # a solve per design point, in the design's order
+    ms = [v["at"]["log10_softening_m"] for v in limits["mullins"].values()]
+    assert ms == sorted(ms)
     glue = limits["imperfect_gluing"]["log10_k"]  # in its own solves (interface springs)
-    assert len(calls) == 3 + len(glue["solved_at"]) and glue["within_bounds"]
+    assert len(calls) == 3 + 3 + len(glue["solved_at"]) and glue["within_bounds"]
     assert "Newton failed" in caplog.text
-    limits, _ = run(lambda q: True)  # the final path itself
-    assert limits == {} and len(calls) == 1
+    limits, masked = run(lambda q: True)  # the final path itself
+    assert limits == {} and masked == []
 
 
 def test_the_report_states_the_limits_and_what_is_masked():
