@@ -137,9 +137,9 @@ def _limit_lines(res: dict) -> list[str]:
     limits = res.get("detection_limits") or {}
     if limits:
         lines += ["How large the candidates not named would have to be to show beside the final "
-                  "model (linearised at their neutral value, an effect with a time or exponent "
-                  "of its own at each point of the generic design, a glue layer solved; beyond "
-                  "the bounds: never):",
+                  "model (linearised at their neutral value, an effect with a time, exponent or "
+                  "softening scale of its own at each point of the generic design, a glue "
+                  "layer solved; beyond the bounds: never):",
                   "",
                   "| effect | parameter | from | would show at |", "|---|---|---|---|"]
         glue = []
