@@ -190,24 +190,26 @@ def test_a_softening_is_stated_at_each_design_point_in_a_solve_of_its_own():
     alpha_1, but a model holds one softening, so no free index takes further copies: one
     prediction per design point.  With d = 0 the path is the final fit's, so only d's
     column is predicted and the final fit's Jacobian serves for the model; where the
-    prediction leaves that path (an elastic model's load steps change once a history is
-    switched on) the model's columns come from the same prediction.  On a linear model
+    prediction leaves that path by more than SAME_PATH_SD noise SDs (an elastic model's
+    load steps change once a history is switched on) the model's columns come from the same
+    prediction; closer, the final fit's still serve.  On a linear model
     whose softening column depends on m, every stated d is the one whose signature,
     refitted with mu by least squares, removes exactly the bar (16)."""
     from diagnosis.effects import EFFECTS
-    from diagnosis.screen import PER_POINT, detection_limits
+    from diagnosis.screen import PER_POINT, SAME_PATH_SD, detection_limits
 
     assert "mullins" in PER_POINT
     x = np.linspace(0.0, 1.0, 60)
     D, M = Param("softening"), Param("log10_softening_m")
     sd = 0.01
     points = {"mullins": [{"softening": 0.0, "log10_softening_m": v} for v in (-3.0, -1.0)]}
-    for path_moves in (False, True):
+    # the path the softening puts the model on: the same, 0.2 SAME_PATH_SD off, 20 SD off
+    for shift, path_moves in ((0.0, False), (0.1 * SAME_PATH_SD * sd, False), (0.1, True)):
         calls = []
 
-        def predict(values, names, path_moves=path_moves, calls=calls):
+        def predict(values, names, shift=shift, calls=calls):
             calls.append([str(q) for q in names])
-            mu_col = x * (1.1 if path_moves and M in values else 1.0)
+            mu_col = x * (1.0 + shift if M in values else 1.0)
             d_col = -np.tanh(x / 10.0 ** (values[M] + 2.0)) * x  # d sigma / d d at d = 0
             cols = {MU: mu_col, D: d_col}
             return types.SimpleNamespace(
@@ -225,7 +227,7 @@ def test_a_softening_is_stated_at_each_design_point_in_a_solve_of_its_own():
         for v in limits.values():
             assert v["parameter"] == "softening" and v["from"] == 0.0
             m = v["at"]["log10_softening_m"]
-            mu_col = x * (1.1 if path_moves else 1.0)
+            mu_col = x * (1.0 + shift if path_moves else 1.0)  # the columns used
             sig = v["step"] * -np.tanh(x / 10.0 ** (m + 2.0)) * x
             (c,), *_ = np.linalg.lstsq(mu_col[:, None], sig, rcond=None)
             assert np.sum(((sig - c * mu_col) / sd) ** 2) == pytest.approx(16.0, rel=1e-9)
