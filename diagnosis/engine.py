@@ -322,12 +322,12 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
     points = {e: design(lib[e], ctx.sim.nu0, scales) for e in cands
               if e in AT_DESIGN + PER_POINT + IN_COMPLIANCE}
 
-    # compressibility and the offsets (a final path that cannot be followed fails there
-    # first), the effects with a time or an exponent (a Maxwell branch or Ogden term per
-    # design point, in one prediction), a softening (one per model) at each design point
-    # and a glue layer (interface springs): independent solves, each group on whichever
-    # rank is free; the elastic ones alone again if the branches' history cannot be
-    # followed
+    # compressibility and the offsets (on the final fit's own path: when it cannot be
+    # followed there, nothing is stated), the effects with a time or an exponent (a Maxwell
+    # branch or Ogden term per design point, in one prediction), a softening (one per
+    # model) at each design point and a glue layer (interface springs): independent
+    # solves, each group on whichever rank is free; the elastic ones alone again if the
+    # branches' history cannot be followed
     def attempt(group: dict, pts=points) -> dict | None:
         if not group:
             return {}

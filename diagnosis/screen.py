@@ -192,6 +192,14 @@ def design_scales(sim, obs: pd.DataFrame, values: dict) -> dict:
     return data_scales(obs, values, geometry.height_mm if geometry is not None else 5.0)
 
 
+def _amplitude_and_nuisance(effect) -> tuple[Param, Param]:
+    """The parameter of an effect that acts at its neutral zero, and the one that acts only
+    through it (:data:`NUISANCE`)."""
+    (amp,) = [n for n in effect.names if n not in NUISANCE]
+    (nuis,) = [n for n in effect.names if n in NUISANCE]
+    return amp, nuis
+
+
 def _term_copies(effect, points: list[dict], values) -> tuple[Param, Param, list]:
     """The amplitude and the nuisance parameter of an :data:`AT_DESIGN` effect, and per
     design point (the point's coordinates on a free term index, the amplitude parameter
@@ -200,8 +208,7 @@ def _term_copies(effect, points: list[dict], values) -> tuple[Param, Param, list
     fams = {n.family for n in effect.names}
     k = 1 + max([p.index for p in map(Param.parse, values)
                  if p.family in fams and p.index is not None], default=-1)
-    (amp,) = [n for n in effect.names if n not in NUISANCE]
-    (nuis,) = [n for n in effect.names if n in NUISANCE]
+    amp, nuis = _amplitude_and_nuisance(effect)
     out = []
     for i, pt in enumerate(points):
         a, q = Param(amp.family, k + i), Param(nuis.family, k + i)
@@ -308,8 +315,8 @@ def _per_point_limits(sim, current, current_names, J_current, effect, points: li
     its nuisance parameter at each design point, one prediction each with the amplitude's
     column (and the model's columns too when the prediction leaves the final fit's path
     by more than :data:`SAME_PATH_SD`)."""
-    (amp,) = [n for n in effect.names if n not in NUISANCE]
-    (nuis,) = [n for n in effect.names if n in NUISANCE]
+    amp, nuis = _amplitude_and_nuisance(effect)
+    final = _span(J_current, whiten)  # the final fit's model span, once
     out = {}
     for pt in points:
         x = float(pt[str(nuis)])
@@ -317,15 +324,14 @@ def _per_point_limits(sim, current, current_names, J_current, effect, points: li
         pred = sim.predict(values, [amp])
         moved = whiten((pred.y - current.prediction)[:, None])
         if np.all(np.abs(moved) < SAME_PATH_SD):
-            jm, j = J_current, pred.jacobian
+            U, j = final, pred.jacobian
         else:
             own = sim.predict(values, list(current_names) + [amp]).jacobian
-            jm, j = own[:, :-1], own[:, -1:]
+            U, j = _span(own[:, :-1], whiten), own[:, -1:]
         Jc = whiten(np.asarray(j, float))
         if not np.isfinite(Jc).all():
             raise ValueError("a Jacobian at the final model is not finite")
-        out[_at_label(amp, nuis, x)] = _limit(Jc[:, 0], _span(jm, whiten),
-                                              math.sqrt(bar2), amp, 0.0,
+        out[_at_label(amp, nuis, x)] = _limit(Jc[:, 0], U, math.sqrt(bar2), amp, 0.0,
                                               effect.bounds(amp), {str(nuis): x})
     return out
 
