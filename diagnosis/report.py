@@ -90,19 +90,7 @@ def _write(d, out: Path, title: str) -> dict:
               "solved': its fit failed (the FE model could not follow it); 'not scored': "
               "the FE model could not follow it at any design point.", ""]
     for rnd in res["rounds"]:
-        lines += [f"From **{rnd['from']}**: added {rnd['added'] or 'nothing'}"
-                  + (f", dropped {', '.join(rnd['dropped'])}" if rnd["dropped"] else ""), "",
-                  "| effect | score | dBIC | LRT p | significant | parameters |",
-                  "|---|---|---|---|---|---|"]
-        for e in rnd["table"]:
-            pars = ", ".join(f"{k} = {v:.4g}" for k, v in e["parameters"].items())
-            sig = "screened out" if e.get("screened_out") else (
-                "could not be solved" if e.get("fit_failed") else (
-                    "not scored" if e.get("score_failed") else (
-                        "yes" if e["significant"] else "no")))
-            lines.append(f"| {e['effect']} | {e['score']:.1f} | {e['delta_bic']:.1f} | "
-                         f"{e['p_value']:.2g} | {sig} | {pars} |")
-        lines.append("")
+        lines += _round_lines(rnd)
     for a in res["ambiguous"]:
         lines += [f"**Cannot tell apart** {a['effects'][0]} and {a['effects'][1]} "
                   f"(dBIC {a['delta_bic']:.1f}); would separate them: {a['separating_test']}.",
@@ -126,6 +114,26 @@ def _write(d, out: Path, title: str) -> dict:
     write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
     return res
 
+
+
+def _round_lines(rnd: dict) -> list[str]:
+    """One round of selection: what it added and dropped, and its table."""
+    back = rnd["added"] is not None and rnd["added"] in rnd["dropped"]
+    lines = [f"From **{rnd['from']}**: added {rnd['added'] or 'nothing'}"
+             + (f", dropped {', '.join(rnd['dropped'])}" if rnd["dropped"] else "")
+             + (" (it lost its place when re-tested beside the others from the joint "
+                "fit's values)" if back else ""), "",
+             "| effect | score | dBIC | LRT p | significant | parameters |",
+             "|---|---|---|---|---|---|"]
+    for e in rnd["table"]:
+        pars = ", ".join(f"{k} = {v:.4g}" for k, v in e["parameters"].items())
+        sig = "screened out" if e.get("screened_out") else (
+            "could not be solved" if e.get("fit_failed") else (
+                "not scored" if e.get("score_failed") else (
+                    "yes" if e["significant"] else "no")))
+        lines.append(f"| {e['effect']} | {e['score']:.1f} | {e['delta_bic']:.1f} | "
+                     f"{e['p_value']:.2g} | {sig} | {pars} |")
+    return [*lines, ""]
 
 def _limit_lines(res: dict) -> list[str]:
     """The detection limits of the candidates not named, and those the named effects mask."""

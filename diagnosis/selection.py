@@ -11,8 +11,9 @@ effects selected so far):
    chi2_current - chi2_candidate ~ chi2(k) and BIC = chi2 + k ln n;
 3. a candidate is *significant* when p < alpha / m (Bonferroni over the m candidates) and
    its BIC beats the current model's by more than the margin; the lowest-BIC significant one
-   is added, and every effect added before is re-tested in its presence (refitted without
-   it; dropped when it no longer earns its place).
+   is added, and once the model holds two or more effects every one of them, the new one
+   too, is re-tested in the presence of the others (refitted without it from the joint
+   fit's values; dropped when it no longer earns its place: ``engine._retest``).
 
 The rounds stop when nothing is significant or ``max_effects`` are in.
 """

@@ -258,3 +258,45 @@ def test_a_missed_effect_within_its_stated_detection_limit_is_counted_apart():
     assert _within_stated_limit(visco, named)
     assert not _within_stated_limit({**visco, "truth": {**visco["truth"], "beta_0": 0.045}},
                                     named)
+
+
+def test_the_effect_just_added_is_re_tested_from_the_joint_fit(monkeypatch):
+    """Open-benchmark world040 (a glue layer and a height offset): nu0 was added third with
+    a likelihood ratio of 126 against the previous fit, and ended at 0.4902 +- 0.005, its
+    neutral 0.49: the joint fit had only found a better optimum of the other parameters.
+    Every effect of a model of two or more, the one just added too, is refitted without
+    it from the joint fit's values and dropped when it no longer earns its place; the
+    first effect alone is not (its bar is the base fit)."""
+    from types import SimpleNamespace
+
+    import diagnosis.engine as eng
+    from brain_fe.parameters import Param
+    from diagnosis.effects import library
+    from diagnosis.selection import chi2_needed
+
+    lib = library("fe")
+    # chi-square of the refit without each effect, from the joint fit's values (chi2 100)
+    without = {"imperfect_gluing": 400.0, "artefacts": 350.0, "compressibility": 100.4}
+    calls = []
+
+    def fit(sim, obs, weights, start, names, *, effect, max_nfev, effect_def):
+        gone = next(e for e in without if e not in effect.split("+"))
+        calls.append((gone, dict(start)))
+        return SimpleNamespace(chi2=without[gone], values=start, effect=effect)
+
+    monkeypatch.setattr(eng, "fit", fit)
+    ctx = SimpleNamespace(sim=None, obs=None, weights=None, lib=lib, max_nfev=15,
+                          chi2=lambda noise, f: f.chi2,
+                          needed=lambda k, m: chi2_needed(k, m, 300))
+    joint = SimpleNamespace(chi2=100.0, values={Param.parse(k): v for k, v in {
+        "mu_0": 1.9, "log10_k": -0.35, "stretch_offset": -0.002, "nu0": 0.4902}.items()})
+    chosen = ["imperfect_gluing", "artefacts", "compressibility"]
+    current, kept, dropped = eng._retest(ctx, joint, chosen, None)
+    assert dropped == ["compressibility"] and kept == ["imperfect_gluing", "artefacts"]
+    assert current.chi2 == 100.4  # the refit without it stands
+    gone, start = calls[-1]
+    assert gone == "compressibility" and Param.parse("nu0") not in start
+    assert start[Param.parse("log10_k")] == -0.35
+    calls.clear()
+    one = eng._retest(ctx, joint, ["imperfect_gluing"], None)
+    assert one == (joint, ["imperfect_gluing"], []) and calls == []

@@ -379,3 +379,20 @@ def test_the_report_states_the_limits_and_what_is_masked():
     assert "| ogden_2term | mu_1 at alpha_1 = 5 | 0 | no allowed value |" in text
     assert "a glue layer softer than k = 10 kPa/mm would show" in text
     assert "log10_k = 1, 1.1, 2.07" in text
+
+
+def test_the_report_says_when_the_effect_just_added_lost_its_place():
+    """report.md's round line: an effect dropped right after being added is said to have
+    lost its place on the re-test from the joint fit (open-world-11)."""
+    from diagnosis.report import _round_lines
+
+    row = {"effect": "compressibility", "score": 62.1, "delta_bic": -120.0,
+           "p_value": 4.5e-29, "significant": True, "parameters": {"nu0": 0.4884}}
+    lines = _round_lines({"from": "imperfect_gluing+artefacts", "added": "compressibility",
+                          "dropped": ["compressibility"], "table": [row]})
+    assert lines[0] == ("From **imperfect_gluing+artefacts**: added compressibility, dropped "
+                        "compressibility (it lost its place when re-tested beside the others "
+                        "from the joint fit's values)")
+    assert "| compressibility | 62.1 | -120.0 | 4.5e-29 | yes | nu0 = 0.4884 |" in lines
+    plain = _round_lines({"from": "base", "added": None, "dropped": [], "table": []})
+    assert plain[0] == "From **base**: added nothing" and plain[-1] == ""
