@@ -115,7 +115,6 @@ def _write(d, out: Path, title: str) -> dict:
     return res
 
 
-
 def _round_lines(rnd: dict) -> list[str]:
     """One round of selection: what it added and dropped, and its table."""
     back = rnd["added"] is not None and rnd["added"] in rnd["dropped"]
@@ -134,6 +133,7 @@ def _round_lines(rnd: dict) -> list[str]:
         lines.append(f"| {e['effect']} | {e['score']:.1f} | {e['delta_bic']:.1f} | "
                      f"{e['p_value']:.2g} | {sig} | {pars} |")
     return [*lines, ""]
+
 
 def _limit_lines(res: dict) -> list[str]:
     """The detection limits of the candidates not named, and those the named effects mask."""
