@@ -233,10 +233,11 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                   _share_with(comm, sim), noise)
     rounds, current, chosen, J = [], base, [], J_base
     ambiguous, notes = [], []
-    spent: set = set()  # dropped by the re-test right after being added: not tried again
     while len(chosen) < max_effects:
+        # an effect dropped by the re-test right after being added is not tried again
+        lost = {r.added for r in rounds if r.added in r.dropped}
         cands = [e for e in (effects or lib)
-                 if e not in chosen and e not in spent and compatible(e, chosen)]
+                 if e not in chosen and e not in lost and compatible(e, chosen)]
         if not cands:
             break
         t_round = time.perf_counter()
@@ -269,9 +270,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                 chosen = [*chosen, added]
                 current, chosen, dropped = _retest(ctx, new, chosen, rnd.noise)
             rnd.dropped = dropped
-            if added in dropped:
-                spent.add(added)
-            else:
+            if added not in dropped:
                 ambiguous += ties
             # no stop at "nothing systematic remains": the noise model of this fit's
             # residual may take a second effect's smooth misfit for wander; the next
