@@ -23,6 +23,7 @@ from mpi4py import MPI
 
 from brain_fe import geometry as geo
 from brain_fe.io import write_json_atomic, write_text_atomic
+from brain_fe.materials import MaterialModel
 from brain_fe.model import ForwardModel
 from brain_fe.parallel import as_progress, gather_all
 from brain_fe.parameters import Param
@@ -97,8 +98,9 @@ def _recordings(values, protocols, geometry_truth, name, noise, rng, nu0=0.49):
     """Recordings of the full protocol from the truth model (finer mesh)."""
     pt = model_point(values, nu0)
     ph = pt.physics
-    fm = ForwardModel(geometry_truth, n_terms=ph.n_terms, maxwell=ph.maxwell,
-                      mullins=ph.softening, ends="springs" if ph.springs else "glued")
+    material = MaterialModel.build(ph.n_terms, maxwell=ph.maxwell, softening=ph.softening,
+                                   laws=ph.laws)  # an effect built on a further law too
+    fm = ForwardModel(geometry_truth, material, ends="springs" if ph.springs else "glued")
     return record(fm, pt.material, protocols, name, noise=noise, rng=rng,
                   artefacts=pt.artefacts, interface=pt.interface)
 

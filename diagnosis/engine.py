@@ -65,7 +65,16 @@ from .screen import (
     detection_limits,
     masked_by_model,
 )
-from .selection import ALPHA, BIC_MARGIN, Context, Union, compare, compatible, run_round
+from .selection import (
+    ALPHA,
+    BIC_MARGIN,
+    HISTORY,
+    Context,
+    Union,
+    compare,
+    compatible,
+    run_round,
+)
 
 log = logging.getLogger(__name__)
 
@@ -359,7 +368,7 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
     limits = None
     if found[0] is not None:
         limits = {}
-        elastic = {e: v for e, v in at_design.items() if e != "viscoelastic"}
+        elastic = {e: v for e, v in at_design.items() if e not in HISTORY}
         if found[1] is None and elastic != at_design:
             with _sharing(ctx.sim, comm):
                 found[1] = attempt(elastic)
