@@ -24,6 +24,7 @@ import pandas as pd
 from mpi4py import MPI
 
 from brain_fe.io import write_json_atomic, write_text_atomic
+from brain_fe.logs import rank_local
 from brain_fe.parallel import Progress, SharedCounter, as_progress, dynamic_items, gather_all
 from brain_fe.vocabulary import COMPRESSION_TENSION, CONTROL, LOADING, TIME
 from recordings.observations import observations
@@ -99,14 +100,15 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
                   initial=len(names) - len(pending)) as bar:
         for name in dynamic_items(pending, counter):
             t0 = time.perf_counter()
-            try:
-                res = _diagnose_one(name, rec, specs, out / str(name), comm=self_comm,
-                                    progress=None, noise=noise_of(noise, name), **kw)
-            except (RuntimeError, ValueError) as exc:  # this specimen, not the batch
-                log.error("%s: not diagnosed: %s", name, exc)
-                res = {"verdict": "not diagnosed", "error": str(exc)}
-                (out / str(name)).mkdir(parents=True, exist_ok=True)
-                write_json_atomic(out / str(name) / FAILED, res, indent=1)
+            with rank_local():  # this rank's specimen: its warnings are said
+                try:
+                    res = _diagnose_one(name, rec, specs, out / str(name), comm=self_comm,
+                                        progress=None, noise=noise_of(noise, name), **kw)
+                except (RuntimeError, ValueError) as exc:  # this specimen, not the batch
+                    log.error("%s: not diagnosed: %s", name, exc)
+                    res = {"verdict": "not diagnosed", "error": str(exc)}
+                    (out / str(name)).mkdir(parents=True, exist_ok=True)
+                    write_json_atomic(out / str(name) / FAILED, res, indent=1)
             done_here.append(name)
             counter.add(1)
             bar.update(1, f"{name}: {res['verdict']} ({time.perf_counter() - t0:.0f} s)")

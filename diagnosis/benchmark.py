@@ -23,6 +23,7 @@ from mpi4py import MPI
 
 from brain_fe import geometry as geo
 from brain_fe.io import write_json_atomic, write_text_atomic
+from brain_fe.logs import rank_local
 from brain_fe.materials import MaterialModel
 from brain_fe.model import ForwardModel
 from brain_fe.parallel import as_progress, gather_all
@@ -186,45 +187,46 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
         (out / "cases").mkdir(parents=True, exist_ok=True)
         write_json_atomic(out / "config.json", config, indent=1)
     comm.Barrier()
-    for i in range(comm.rank, n_cases, comm.size):
-        case_rng = np.random.default_rng(seeds[i])
-        for attempt in range(3):  # a truth the FE model cannot follow is drawn again
-            try:
-                rec, spec, case = make_case(i, labels[i], case_rng, refinement=refinement,
-                                            truth_refinement=truth_refinement,
-                                            protocols=protocols, models=models)
-                break
-            except ConvergenceError as exc:
-                if attempt == 2:
-                    raise
-                log.warning("case%03d: truth draw %d not solvable (%s); drawing again", i,
-                            attempt, exc)
-        csv_path = out / "cases" / f"{case.name}_recordings.csv"
-        result_path = out / "cases" / f"{case.name}_result.json"
-        text = rec.to_csv(index=False)
-        # resume: the diagnosis is deterministic, so identical recordings diagnosed
-        # before (this case's result file, or the results.json of an earlier run of the
-        # same benchmark) are not diagnosed again
-        res = None
-        if reusable and csv_path.exists() and csv_path.read_text() == text:
-            if result_path.exists():
-                res = json.loads(result_path.read_text())
-            elif case.name in previous:
-                res = previous[case.name]
-        if res is not None:
-            log.info("%s: recordings unchanged, diagnosis reused", case.name)
-        write_text_atomic(csv_path, text)
-        spec.to_csv(out / "cases" / f"{case.name}_specimens.csv", index=False)
-        # --- blind: from here on only the recordings are used
-        obs = observations(rec)
-        if res is None:
-            res = _diagnose_case(obs, refinement, correction_refinement, classes, case.name)
-            write_json_atomic(result_path, res, indent=1)
-        res.update(case=case.name)
-        mine.append((case, res, _rms_over_true_noise(obs, res)))
-        log.info("%s: truth %s, verdict %s (%.0f s)", case.name, case.effect, res["verdict"],
-                 res["elapsed_s"])
-        bar.update(1, f"{case.name} {case.effect} -> {res['verdict']}")
+    with rank_local():  # this rank's own cases: its warnings are said
+        for i in range(comm.rank, n_cases, comm.size):
+            case_rng = np.random.default_rng(seeds[i])
+            for attempt in range(3):  # a truth the FE model cannot follow is drawn again
+                try:
+                    rec, spec, case = make_case(i, labels[i], case_rng, refinement=refinement,
+                                                truth_refinement=truth_refinement,
+                                                protocols=protocols, models=models)
+                    break
+                except ConvergenceError as exc:
+                    if attempt == 2:
+                        raise
+                    log.warning("case%03d: truth draw %d not solvable (%s); drawing again", i,
+                                attempt, exc)
+            csv_path = out / "cases" / f"{case.name}_recordings.csv"
+            result_path = out / "cases" / f"{case.name}_result.json"
+            text = rec.to_csv(index=False)
+            # resume: the diagnosis is deterministic, so identical recordings diagnosed
+            # before (this case's result file, or the results.json of an earlier run of the
+            # same benchmark) are not diagnosed again
+            res = None
+            if reusable and csv_path.exists() and csv_path.read_text() == text:
+                if result_path.exists():
+                    res = json.loads(result_path.read_text())
+                elif case.name in previous:
+                    res = previous[case.name]
+            if res is not None:
+                log.info("%s: recordings unchanged, diagnosis reused", case.name)
+            write_text_atomic(csv_path, text)
+            spec.to_csv(out / "cases" / f"{case.name}_specimens.csv", index=False)
+            # --- blind: from here on only the recordings are used
+            obs = observations(rec)
+            if res is None:
+                res = _diagnose_case(obs, refinement, correction_refinement, classes, case.name)
+                write_json_atomic(result_path, res, indent=1)
+            res.update(case=case.name)
+            mine.append((case, res, _rms_over_true_noise(obs, res)))
+            log.info("%s: truth %s, verdict %s (%.0f s)", case.name, case.effect, res["verdict"],
+                     res["elapsed_s"])
+            bar.update(1, f"{case.name} {case.effect} -> {res['verdict']}")
     bar.close()
     allres = gather_all(comm, mine)
     summary = score([c for c, _, _ in allres], [r for _, r, _ in allres], classes,

@@ -45,6 +45,7 @@ import numpy as np
 import pandas as pd
 
 from brain_fe.ends import resolve
+from brain_fe.logs import rank_local
 from brain_fe.parallel import SharedCounter, dynamic_items
 from brain_fe.parameters import Param
 from simulators.coordinates import NU0
@@ -215,7 +216,8 @@ def _share_with(comm, sim=None):
                 return [work(items[0])]
         else:
             counter = SharedCounter(comm)
-            done = [(i, work(items[i])) for i in dynamic_items(order, counter)]
+            with rank_local():  # this rank's own items: its warnings are said
+                done = [(i, work(items[i])) for i in dynamic_items(order, counter)]
             counter.free()
             done = [x for part in comm.allgather(done) for x in part]
         return [r for _, r in sorted(done, key=lambda x: x[0])]

@@ -23,6 +23,7 @@ import pandas as pd
 from mpi4py import MPI
 
 from brain_fe.io import write_json_atomic, write_text_atomic
+from brain_fe.logs import rank_local
 from brain_fe.parallel import as_progress, gather_all
 from brain_fe.solver import ConvergenceError
 from brain_fe.vocabulary import TIME
@@ -129,37 +130,38 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
     models: dict = {}
     mine = []
     skipped = []
-    for i in range(comm.rank, n_cases, comm.size):
-        made = _case(i, seed, models)
-        if made is None:
-            skipped.append(f"world{i:03d}")
-            continue
-        rec, spec_df, case = made
-        label = dict(case.label(), noise_sd=noise_sd(case.noise))
-        # the label of every case as soon as it exists (apart from what the diagnosis
-        # reads), so that a benchmark stopped early can be scored (--rescore)
-        write_json_atomic(out / "labels" / f"{case.name}.json", label, indent=1)
-        csv_path = out / "cases" / f"{case.name}_recordings.csv"
-        result_path = out / "cases" / f"{case.name}_result.json"
-        text = rec.to_csv(index=False)
-        res = None
-        if reusable and result_path.exists() and csv_path.exists() and \
-                csv_path.read_text() == text:
-            res = json.loads(result_path.read_text())
-            log.info("%s: recordings unchanged, diagnosis reused", case.name)
-        write_text_atomic(csv_path, text)
-        write_text_atomic(out / "cases" / f"{case.name}_specimens.csv",
-                          spec_df.to_csv(index=False))
-        obs = observations(rec)  # blind from here on
-        if res is None:
-            res = _diagnose(obs, case.spec, refinement, case.name)
-            write_json_atomic(result_path, res, indent=1)
-        res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, case.noise,
-                                                               case.noise_rms)
-        mine.append((case.name, label, res))
-        log.info("%s: %s %s -> %s (%s)", case.name, label["kind"], label["expected"],
-                 res["verdict"], res["status"])
-        bar.update(1, f"{case.name} {label['expected']} -> {res['verdict']}")
+    with rank_local():  # this rank's own cases: its warnings are said
+        for i in range(comm.rank, n_cases, comm.size):
+            made = _case(i, seed, models)
+            if made is None:
+                skipped.append(f"world{i:03d}")
+                continue
+            rec, spec_df, case = made
+            label = dict(case.label(), noise_sd=noise_sd(case.noise))
+            # the label of every case as soon as it exists (apart from what the diagnosis
+            # reads), so that a benchmark stopped early can be scored (--rescore)
+            write_json_atomic(out / "labels" / f"{case.name}.json", label, indent=1)
+            csv_path = out / "cases" / f"{case.name}_recordings.csv"
+            result_path = out / "cases" / f"{case.name}_result.json"
+            text = rec.to_csv(index=False)
+            res = None
+            if reusable and result_path.exists() and csv_path.exists() and \
+                    csv_path.read_text() == text:
+                res = json.loads(result_path.read_text())
+                log.info("%s: recordings unchanged, diagnosis reused", case.name)
+            write_text_atomic(csv_path, text)
+            write_text_atomic(out / "cases" / f"{case.name}_specimens.csv",
+                              spec_df.to_csv(index=False))
+            obs = observations(rec)  # blind from here on
+            if res is None:
+                res = _diagnose(obs, case.spec, refinement, case.name)
+                write_json_atomic(result_path, res, indent=1)
+            res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, case.noise,
+                                                                   case.noise_rms)
+            mine.append((case.name, label, res))
+            log.info("%s: %s %s -> %s (%s)", case.name, label["kind"], label["expected"],
+                     res["verdict"], res["status"])
+            bar.update(1, f"{case.name} {label['expected']} -> {res['verdict']}")
     bar.close()
     allres = sorted(gather_all(comm, mine), key=lambda x: x[0])
     labels = {n: lab for n, lab, _ in allres}

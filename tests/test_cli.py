@@ -72,3 +72,26 @@ def test_unparsable_argument_exits_2(capsys):
         main(["simulate", "--mu", "abc"])
     assert e.value.code == 2
     assert "expected comma-separated numbers" in capsys.readouterr().err
+
+
+def test_other_ranks_say_their_own_warnings_only():
+    """Rank 0 logs everything; another rank only the warnings and errors of work it does
+    on its own (a specimen of a batch, an item of shared work: ``rank_local``), marked
+    with its rank. Before, every record of rank 1 was dropped, so the failed candidate
+    fits and the specimens of half a batch under ``mpirun -n 2`` went unsaid."""
+    import logging
+
+    from brain_fe.logs import RankFilter, rank_local
+
+    def rec(level, msg="fit of %s failed"):
+        return logging.LogRecord("diagnosis", level, __file__, 1, msg, ("mullins",), None)
+
+    zero, one = RankFilter(0), RankFilter(1)
+    assert zero.filter(rec(logging.INFO)) and zero.filter(rec(logging.WARNING))
+    assert not one.filter(rec(logging.WARNING))  # all ranks do the same: rank 0 says it
+    with rank_local():
+        assert not one.filter(rec(logging.INFO))
+        r = rec(logging.WARNING)
+        assert one.filter(r) and r.getMessage() == "[rank 1] fit of mullins failed"
+        assert one.filter(rec(logging.ERROR))
+    assert not one.filter(rec(logging.ERROR))
