@@ -34,7 +34,7 @@ class HistoryState:
         return self.function.x.array
 
     def compile_update(self, update_ufl) -> None:
-        self._expr = fem.Expression(update_ufl, self.points)
+        self._expr = _compat.expression(update_ufl, self.points)
 
     def reset(self) -> None:
         self.array[:] = 0.0
