@@ -17,6 +17,8 @@ import dolfinx.fem.petsc as fem_petsc
 import numpy as np
 import ufl
 
+from . import jit_cache
+
 DOLFINX_VERSION: str = dolfinx.__version__
 
 __all__ = [
@@ -50,14 +52,6 @@ _FCP = "form_compiler_options" if "form_compiler_options" in _FORM_KW else "form
 _JITP = "jit_options" if "jit_options" in _FORM_KW else "jit_params"
 
 
-# How long a process waits for another one compiling the same form (FFCx's file-based JIT
-# cache) before it gives up; FFCx's default is 10 s, shorter than one spectral Ogden form
-# takes to compile (10-30 s idle, minutes on loaded cores), so that with a cold cache the
-# second of two ranks needing a new model at once failed with a TimeoutError, which the
-# diagnosis took for a candidate its model cannot follow.
-JIT_TIMEOUT_S = 900
-
-
 def form(expr: ufl.Form, *, fast_math: bool = True):
     """Compile a UFL form; C flags tuned for the long expressions of spectral materials.
 
@@ -65,8 +59,9 @@ def form(expr: ufl.Form, *, fast_math: bool = True):
     the compiled kernels is checked by the tests (eigen-sums to 1e-12 against numpy).
     """
     cflags = ["-O3", "-g0"] + (["-ffast-math"] if fast_math else [])
-    return fem.form(expr, **{_JITP: {"cffi_extra_compile_args": cflags,
-                                     "timeout": JIT_TIMEOUT_S}})
+    with jit_cache.compiling(expr):
+        return fem.form(expr, **{_JITP: {"cffi_extra_compile_args": cflags,
+                                         "timeout": jit_cache.TIMEOUT_S}})
 
 
 _EXPR_KW = inspect.signature(fem.Expression.__init__).parameters
@@ -74,8 +69,10 @@ _EXPR_JITP = "jit_options" if "jit_options" in _EXPR_KW else "jit_params"
 
 
 def expression(expr, points):
-    """Compile a UFL expression at reference ``points`` (the JIT wait of :func:`form`)."""
-    return fem.Expression(expr, points, **{_EXPR_JITP: {"timeout": JIT_TIMEOUT_S}})
+    """Compile a UFL expression at reference ``points`` (the JIT cache's lock as
+    :func:`form`)."""
+    with jit_cache.compiling(expr):
+        return fem.Expression(expr, points, **{_EXPR_JITP: {"timeout": jit_cache.TIMEOUT_S}})
 
 
 def petsc_vec(u: fem.Function):

@@ -26,3 +26,55 @@ def test_gmsh_cylinder_slip_compression_matches_closed_form():
     for lam, p in zip(df.stretch, df.nominal_stress_kPa, strict=True):
         if lam < 1.0:
             assert p == pytest.approx(homogeneous_uniaxial(lam), rel=1e-4)
+
+
+JIT_FORM = """
+import sys
+import ufl
+from dolfinx import mesh
+from mpi4py import MPI
+from brain_fe import _compat
+msh = mesh.create_unit_square(MPI.COMM_SELF, 2, 2)
+V = _compat.scalar_space(msh, 1)
+u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+x = ufl.SpatialCoordinate(msh)
+_compat.form((1 + float(sys.argv[1]) * x[0]) * u * v * ufl.dx)
+print("compiled")
+"""
+
+
+def test_a_compilation_left_unfinished_is_done_again(tmp_path):
+    """A process stopped while it compiles a form leaves the form's C file in the JIT cache
+    without FFCx's mark of a finished compilation; FFCx then makes every later process
+    wait for it and fail (a TimeoutError that a diagnosis took for a candidate whose model
+    cannot be solved: 'JIT compilation timed out' on rank 0 of a real run). Under the
+    cache's lock such a file can only be a stopped process's: it is moved aside and the
+    form compiled again, in seconds."""
+    import random
+    import subprocess
+    import sys
+
+    from brain_fe import jit_cache
+
+    factor = repr(random.uniform(1.0, 2.0))  # a form no earlier run compiled
+    cache = jit_cache.cache_dir()
+
+    def compile_it():
+        return subprocess.run([sys.executable, "-c", JIT_FORM, factor], capture_output=True,
+                              text=True, timeout=120)
+
+    before = set(cache.glob("libffcx_forms_*")) if cache.exists() else set()
+    assert compile_it().stdout.strip() == "compiled"
+    new = sorted(set(cache.glob("libffcx_forms_*")) - before)
+    c_file = next(p for p in new if p.suffix == ".c")
+    for p in new:  # as a process stopped during the compilation leaves it: the C file only
+        if p != c_file:
+            p.unlink()
+    assert jit_cache.unfinished(cache).count(c_file) == 1
+    again = compile_it()  # without the lock: 900 s of waiting, then a TimeoutError
+    assert again.returncode == 0 and again.stdout.strip() == "compiled", again.stderr
+    assert c_file.with_suffix(".c.cached").exists()
+    assert c_file.with_suffix(".c.failed").exists()
+    assert "left unfinished by a stopped process" in again.stderr
+    for p in set(cache.glob(c_file.stem + "*")):  # leave the cache as it was
+        p.unlink()
