@@ -6,6 +6,8 @@
   ``Fetch_and_op``; :func:`dynamic_items` hands out the items of a list one at a time to
   whichever rank asks next (dynamic load balancing without a master rank), so one command
   scales from a laptop to a cluster under ``mpirun``/``srun``.
+* :func:`balanced`: a static share of items of known costs (longest first, each to the
+  least loaded rank), the same on every rank that holds the same costs.
 * :func:`rank0_first`: build something on rank 0 first (it fills the on-disk JIT cache),
   then on the other ranks.
 """
@@ -99,6 +101,18 @@ def dynamic_items(items: Sequence, counter: SharedCounter, slot: int = 0) -> Ite
         if pos >= len(items):
             return
         yield items[pos]
+
+
+def balanced(costs: Sequence[float], size: int) -> list[list[int]]:
+    """The indices of the items each of ``size`` ranks takes: longest first, each to the
+    rank with the least cost so far (ties: the lower rank), in index order per rank."""
+    load = [0.0] * size
+    share: list[list[int]] = [[] for _ in range(size)]
+    for i in sorted(range(len(costs)), key=lambda i: (-costs[i], i)):
+        r = min(range(size), key=lambda r: (load[r], r))
+        load[r] += costs[i]
+        share[r].append(i)
+    return [sorted(s) for s in share]
 
 
 def rank0_first(comm, build: Callable):

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import time
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -41,6 +42,7 @@ from brain_fe import geometry as geo
 from brain_fe.ends import resolve
 from brain_fe.materials import MaterialModel
 from brain_fe.model import ForwardModel
+from brain_fe.parallel import balanced
 from brain_fe.parameters import Param
 from brain_fe.protocols import Protocol, plate_at_rest
 from brain_fe.vocabulary import CHANNELS, COMPRESSION_TENSION, NEUTRAL
@@ -79,6 +81,9 @@ class FESimulator:
         self.correction = np.zeros(len(self.obs))
         self.solves = 0  # protocol solves (one per curve and prediction)
         self.shared = None  # an MPI communicator whose ranks share the curves of a prediction
+        # seconds of each curve's last shared solve, per way of following it (branches or
+        # the recorded path); before the first, its number of recorded points
+        self._cost = {}
 
     @contextlib.contextmanager
     def sharing(self, comm):
@@ -113,8 +118,9 @@ class FESimulator:
         J = np.zeros((len(self.obs), len(wrt)))
         branches = self.path == "branches" or (self.path == "auto" and fm.state is None)
         c = self.shared
+        seconds = np.zeros(len(self.curves))
         try:
-            self._solve_curves(fm, point, needed, branches, c, y, J)
+            self._solve_curves(fm, point, needed, branches, c, y, J, seconds)
         except Exception as exc:  # noqa: BLE001 - every rank must learn of it
             if c is None:
                 raise
@@ -128,6 +134,9 @@ class FESimulator:
             if failures:
                 raise failures[0]
             y, J = c.allreduce(y), c.allreduce(J)
+            # each curve timed on the rank that solved it, 0 on the others: the sum is
+            # exact, so every rank holds the same costs and shares the next one alike
+            self._cost[branches] = c.allreduce(seconds)
         return Prediction(y + self.correction, J, wrt)
 
     def contact_events(self, values: Mapping[Param, float]) -> dict[str, list]:
@@ -142,11 +151,24 @@ class FESimulator:
                                 artefacts=point.artefacts).contact_events
                 for curve, path, _ in self.curves}
 
-    def _solve_curves(self, fm, point, needed, branches, c, y, J) -> None:
-        """Fill ``y`` and ``J`` with the rows of this rank's share of the curves."""
-        for i, (_curve, path, rows) in enumerate(self.curves):
-            if c is not None and i % c.size != c.rank:
-                continue
+    def share_of(self, branches: bool, comm) -> list[int]:
+        """The curves this rank of ``comm`` solves: the costliest first, each to the rank
+        with the least work so far (by the seconds of the last shared solve; the default
+        protocol's compression/tension costs about as much as its two torsions together,
+        so it goes alone to one rank and the torsions to the other)."""
+        if comm is None:
+            return list(range(len(self.curves)))
+        cost = self._cost.get(branches)
+        if cost is None or len(cost) != len(self.curves) or not (cost > 0).all():
+            cost = [float(len(path.points)) for _, path, _ in self.curves]
+        return balanced(list(cost), comm.size)[comm.rank]
+
+    def _solve_curves(self, fm, point, needed, branches, c, y, J, seconds) -> None:
+        """Fill ``y`` and ``J`` with the rows of this rank's share of the curves, and
+        ``seconds`` with the time each of them took."""
+        for i in self.share_of(branches, c):
+            _curve, path, rows = self.curves[i]
+            t0 = time.perf_counter()
             if branches:
                 vals, ders = self._branches(fm, point, path, rows, needed)
             else:
@@ -161,6 +183,7 @@ class FESimulator:
                 y[obs_rows] = vals[ch]
                 for j, d in enumerate(ders[ch]):
                     J[obs_rows, j] = d
+            seconds[i] = time.perf_counter() - t0
 
     def _branches(self, fm, point, path, rows, needed):
         """Channels (and sensitivities) at the recorded controls by splines through the
