@@ -18,6 +18,8 @@ Families of the built-in physics (units in brackets):
 ``softening``  Ogden-Roxburgh d = 1/r [-]
 ``softening_m``  Ogden-Roxburgh energy scale m [kPa]
 ``k_r``, ``k_theta``  tangential stiffness per area of a glue layer [kPa/mm]
+``fibre_k1``   stiffness of the axial fibre family [kPa] (``materials/fibres.py``)
+``fibre_k2``   exponential stiffening of the axial fibres [-]
 =============  ==========================================================================
 """
 
