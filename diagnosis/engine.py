@@ -70,6 +70,7 @@ from .selection import (
     ALPHA,
     BIC_MARGIN,
     HISTORY,
+    MODEL_FAILURES,
     Context,
     Union,
     compare,
@@ -115,6 +116,9 @@ class Diagnosis:
     # how large the candidates not named would have to be to show beside the final model
     detection_limits: dict = field(default_factory=dict)  # (diagnosis.screen.detection_limits)
     masked: list = field(default_factory=list)  # candidates no allowed value of would show
+    # evaluations that failed for a reason other than the model (a verdict that may be
+    # incomplete; the notes say so)
+    internal_errors: list = field(default_factory=list)
 
     @property
     def verdict(self) -> str:
@@ -179,6 +183,7 @@ class Diagnosis:
             "ambiguous": self.ambiguous,
             "detection_limits": self.detection_limits,
             "masked": self.masked,
+            "internal_errors": self.internal_errors,
             "notes": self.notes,
             "rms_before": self._rms_total(self.base),
             "rms_after": self._rms_total(w),
@@ -201,26 +206,47 @@ def _plain(d: dict) -> dict:
     return {str(k): float(v) for k, v in d.items()}
 
 
-def _share_with(comm, sim=None):
+@dataclass(frozen=True)
+class _Internal:
+    """An item of shared work that failed for a reason other than the model (picklable)."""
+
+    why: str
+
+
+def _share_with(comm, sim=None, errors: list | None = None):
+    def attempt(work, item):
+        try:
+            return work(item)
+        except Exception as exc:  # noqa: BLE001 - the work catches the model's failures
+            log.error("internal error, an item of the diagnosis left out: %s: %s",
+                      type(exc).__name__, exc)
+            return _Internal(f"{type(exc).__name__}: {exc}")
+
     def share(items, work, cost):
         """``work`` on the ``items``, most expensive first (by the estimated ``cost``),
         each taken by whichever rank of ``comm`` is free; every rank gets every result,
         in the order of ``items``.  A lone item (a round with one candidate left) is
         worked on by all ranks together, each solving its share of ``sim``'s curves
-        (every solve starts afresh, so the result is the same as on one rank)."""
+        (every solve starts afresh, so the result is the same as on one rank).  An item
+        whose work raises (an internal error: ``work`` catches the model's own failures)
+        gives None, and ``errors`` gets why, on every rank alike."""
         order = sorted(range(len(items)), key=lambda i: -cost(items[i]))
         if comm is None or comm.size == 1:
-            done = [(i, work(items[i])) for i in order]
+            done = [(i, attempt(work, items[i])) for i in order]
         elif len(items) == 1:
             with _sharing(sim, comm):
-                return [work(items[0])]
+                done = [(0, attempt(work, items[0]))]
         else:
             counter = SharedCounter(comm)
             with rank_local():  # this rank's own items: its warnings are said
-                done = [(i, work(items[i])) for i in dynamic_items(order, counter)]
+                done = [(i, attempt(work, items[i])) for i in dynamic_items(order, counter)]
             counter.free()
             done = [x for part in comm.allgather(done) for x in part]
-        return [r for _, r in sorted(done, key=lambda x: x[0])]
+        out = [r for _, r in sorted(done, key=lambda x: x[0])]
+        if errors is not None:
+            errors.extend(dict.fromkeys(r.why for r in out if isinstance(r, _Internal)
+                                        and r.why not in errors))
+        return [None if isinstance(r, _Internal) else r for r in out]
     return share
 
 
@@ -240,8 +266,9 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     if progress:
         progress("base")
     lib = library(sim.kind)
+    errors: list = []  # internal errors (not the model's failures) met on any rank
     ctx = Context(sim, obs, weights, lib, list(BASE_NAMES), alpha, bic_margin, max_nfev,
-                  _share_with(comm, sim), noise)
+                  _share_with(comm, sim, errors), noise, errors)
     rounds, current, chosen, J = [], base, [], J_base
     ambiguous, notes = [], []
     while len(chosen) < max_effects:
@@ -315,6 +342,10 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                      "could not follow the recorded path at any of its design points, so "
                      "the verdict does not test "
                      + ("it" if len(rounds[0].unscored) == 1 else "them"))
+    if errors:
+        notes.append(f"incomplete: {len(errors)} evaluation(s) failed for a reason other "
+                     f"than the model ({'; '.join(errors[:3])}); what they concern was left "
+                     "out, so the verdict may miss what it would have shown")
     lift_off = resolve(getattr(sim, "ends", "glued"))[1]
     notes += contact_notes(obs, base, current, sd, lift_off=lift_off)
     if lift_off and "in_contact" in obs and not obs["in_contact"].all():
@@ -322,7 +353,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     timings["noise_locate_decide"] = round(time.perf_counter() - t_end, 2)
     return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
                      ambiguous, disc, time.perf_counter() - t0, obs, notes, tried, doubt,
-                     timings, limits, masked)
+                     timings, limits, masked, list(errors))
 
 
 def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np.ndarray,
@@ -352,7 +383,7 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
             return detection_limits(ctx.sim, current, parameter_names(lib, in_model), J,
                                     group, nm.whiten_jacobian,
                                     lambda eff: ctx.needed(len(eff.names), m), pts)
-        except Exception as exc:  # a note is not worth a failed diagnosis (nor a compile)
+        except MODEL_FAILURES as exc:  # a note is not worth a failed diagnosis
             log.warning("detection limits at the final model: %s: %s",
                         type(exc).__name__, exc)
             return None
@@ -372,8 +403,7 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
         limits = {}
         elastic = {e: v for e, v in at_design.items() if e not in HISTORY}
         if found[1] is None and elastic != at_design:
-            with _sharing(ctx.sim, comm):
-                found[1] = attempt(elastic)
+            found[1] = ctx.share([elastic], attempt, lambda g: 1.0)[0]  # all ranks
         for part in found:  # in the order of the groups, a softening's points in turn
             for e, d in (part or {}).items():
                 limits.setdefault(e, {}).update(d)
@@ -542,12 +572,13 @@ def _complete_contenders(ctx: Context, rnd, chosen: list, sig: list) -> list:
         def run(e):
             try:
                 return _complete(ctx, rnd.fits[e], [*chosen, e])
-            except Exception as exc:  # the ranking fit stands
+            except MODEL_FAILURES as exc:  # the ranking fit stands
                 log.warning("completing the fit of %s failed: %s", e, exc)
                 return rnd.fits[e]
 
         done = ctx.share(short, run, lambda e: rnd.fits[e].seconds)
-        rnd.fits.update(zip(short, done, strict=True))
+        rnd.fits.update((e, f if f is not None else rnd.fits[e])  # None: internal error
+                        for e, f in zip(short, done, strict=True))
         log.info("near tie between %s: completed the fits of %s", near, short)
     return short
 
@@ -575,8 +606,13 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list,
             without = fit(ctx.sim, ctx.obs, ctx.weights, start,
                           parameter_names(ctx.lib, rest), effect="+".join(rest),
                           max_nfev=ctx.max_nfev, effect_def=_union(ctx, rest))
-        except Exception as exc:  # cannot do without it: it stays
+        except MODEL_FAILURES as exc:  # cannot do without it: it stays
             log.warning("re-test without %s failed: %s", e, exc)
+            continue
+        except Exception as exc:  # noqa: BLE001 - an internal error: it stays, and is said
+            log.error("internal error in the re-test without %s: %s: %s", e,
+                      type(exc).__name__, exc)
+            ctx.errors.append(f"{type(exc).__name__}: {exc}")
             continue
         k = len(ctx.lib[e].names)
         lrt = ctx.chi2(noise, without) - ctx.chi2(noise, current)

@@ -41,6 +41,12 @@ HISTORY_COST = 4.0
 RANKING_NFEV = 8  # evaluations of a competitor's fit (the leader's fit is then completed)
 # Effects that cannot be combined (they model the same parameters)
 EXCLUSIVE = {frozenset({"artefacts", "glued_ends"})}
+# A candidate's model failing to follow the data (Newton, the linear solver, a refused
+# start, a protocol the model cannot express): the candidate is left out of the round.
+# Anything else (a timeout, an OSError, a bug) is an internal error: it escapes to the
+# work sharing (engine._share_with), which leaves the item out too but records it, and the
+# diagnosis says it is incomplete
+MODEL_FAILURES = (RuntimeError, ValueError, ArithmeticError, np.linalg.LinAlgError)
 ALPHA = 1e-3  # significance level of an effect (Bonferroni over the round's candidates)
 BIC_MARGIN = 10.0  # and the BIC improvement it must bring
 
@@ -66,6 +72,7 @@ class Context:
     max_nfev: int
     share: object  # share(items, work, cost) -> results (MPI-aware)
     stated: dict | None = None
+    errors: list = field(default_factory=list)  # internal errors met (the same on every rank)
 
     def chi2(self, noise, f: Fit) -> float:
         z = noise.whiten(f.prediction - self.obs["value"].to_numpy(float))
@@ -102,7 +109,7 @@ def _fit(ctx: Context, start: dict, effects: list, label: str, nfev: int):
         return fit(ctx.sim, ctx.obs, ctx.weights, start,
                    parameter_names(ctx.lib, effects, ctx.base_names), effect=label,
                    max_nfev=nfev, effect_def=Union(ctx.lib, effects))
-    except Exception as exc:  # a model that cannot follow the data is reported, not fatal
+    except MODEL_FAILURES as exc:  # a model that cannot follow the data is reported
         log.warning("fit of %s failed: %s", label, exc)
         return None
 
@@ -138,7 +145,7 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
         try:
             return score(sim, obs, ctx.weights, current, ctx.lib[item[0]], item[1], names,
                          J_current)
-        except Exception as exc:  # a model that cannot be solved there scores nothing
+        except MODEL_FAILURES as exc:  # a model that cannot be solved there scores nothing
             log.warning("score of %s at %s failed: %s", item[0], item[1], exc)
             return None
 

@@ -145,6 +145,59 @@ def test_wander_far_above_the_stated_noise_is_a_cannot_tell():
     assert _cannot_tell("unexplained", single, nm, {"torque": 0.074}) == ""
 
 
+def test_an_internal_error_leaves_the_item_out_and_is_said():
+    """A candidate whose evaluation fails for a reason other than its model (here a
+    TimeoutError, as FFCx's JIT raised when another rank was compiling the same form)
+    used to be taken for a model that cannot follow the data, silently: the verdict could
+    depend on which rank compiled first. Now the work sharing leaves the item out as
+    before but records why, and the diagnosis says it is incomplete; the model's own
+    failures (a Newton failure) are still the candidate's business."""
+    import pandas as pd
+
+    from brain_fe.solver import ConvergenceError
+    from diagnosis.engine import _share_with, diagnose
+    from simulators.homogeneous import HomogeneousSimulator
+
+    errors: list = []
+    share = _share_with(None, None, errors)
+
+    def work(x):
+        if x == 2:
+            raise TypeError("a bug")
+        return x * 10
+
+    assert share([1, 2, 3], work, lambda x: 1.0) == [10, None, 30]
+    assert errors == ["TypeError: a bug"]
+
+    lam = np.r_[np.linspace(0.99, 0.85, 15), np.linspace(1.01, 1.15, 15)]
+    obs = pd.DataFrame({"specimen": "S", "curve": ["compression"] * 15 + ["tension"] * 15,
+                        "channel": "stress", "branch": "loading", "cycle": 1,
+                        "control": lam, "time_s": np.nan, "value": 0.0})
+    sim = HomogeneousSimulator(obs)
+    obs["value"] = sim.predict({"mu_0": 1.3, "alpha_0": -15.0, "nu0": 0.49}, [])[0] \
+        + np.random.default_rng(0).normal(0.0, 1e-3, len(obs))
+
+    class Flaky(HomogeneousSimulator):
+        def predict(self, values, wrt=()):
+            names = {str(k) for k in values}
+            if "mu_1" in names:  # the second Ogden term's forms "cannot be compiled"
+                raise TimeoutError("JIT compilation timed out")
+            if "stretch_offset" in names:  # the offsets' model "cannot be solved"
+                raise ConvergenceError("Newton failed")
+            return super().predict(values, wrt)
+
+    d = diagnose(Flaky(obs), obs, noise={"stress": 1e-3})
+    out = d.to_json()
+    assert d.verdict == "none"
+    assert out["internal_errors"] == ["TimeoutError: JIT compilation timed out"]
+    assert any(n.startswith("incomplete: 1 evaluation(s) failed for a reason other than "
+                            "the model (TimeoutError") for n in out["notes"])
+    assert all("ConvergenceError" not in e for e in out["internal_errors"])
+    plain = diagnose(sim, obs, noise={"stress": 1e-3}).to_json()
+    assert plain["internal_errors"] == [] and not any(
+        n.startswith("incomplete") for n in plain["notes"])
+
+
 def test_a_near_tie_is_judged_on_completed_fits(monkeypatch):
     """Closed-benchmark case018 (a weak second Ogden term, base RMS 1.52 noise SDs): the
     three-parameter offsets (fit converged) led the two-term fit that the ranking budget
