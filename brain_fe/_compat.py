@@ -9,6 +9,7 @@ branch for the feature that changed (0.10 moved ``gmshio`` to ``dolfinx.io.gmsh`
 from __future__ import annotations
 
 import inspect
+import itertools
 from typing import Any
 
 import dolfinx
@@ -25,6 +26,7 @@ __all__ = [
     "DOLFINX_VERSION",
     "vector_space",
     "scalar_space",
+    "stable_constant_counts",
     "form",
     "petsc_vec",
     "apply_lifting",
@@ -36,15 +38,41 @@ __all__ = [
 
 def vector_space(mesh, degree: int, dim: int):
     """Continuous Lagrange space of ``dim`` components (any dim, e.g. 3 on a 2D mesh)."""
-    if hasattr(fem, "functionspace"):  # >= 0.8
-        return fem.functionspace(mesh, ("Lagrange", degree, (dim,)))
-    return fem.VectorFunctionSpace(mesh, ("Lagrange", degree), dim=dim)
+    with jit_cache.compiling(mesh=mesh):  # the element and dofmap are compiled too
+        if hasattr(fem, "functionspace"):  # >= 0.8
+            return fem.functionspace(mesh, ("Lagrange", degree, (dim,)))
+        return fem.VectorFunctionSpace(mesh, ("Lagrange", degree), dim=dim)
 
 
 def scalar_space(mesh, degree: int):
-    if hasattr(fem, "functionspace"):
-        return fem.functionspace(mesh, ("Lagrange", degree))
-    return fem.FunctionSpace(mesh, ("Lagrange", degree))
+    with jit_cache.compiling(mesh=mesh):
+        if hasattr(fem, "functionspace"):
+            return fem.functionspace(mesh, ("Lagrange", degree))
+        return fem.FunctionSpace(mesh, ("Lagrange", degree))
+
+
+# UFL sorts the operands of sums and products into a canonical order and compares two
+# Constants there by their repr, which ends in the object's global count: as text, so that
+# count 10 sorts before count 9.  A form's structure, and with it its signature (the key of
+# the JIT cache), then depended on how many Constants the process had made before: the same
+# model built after others compiled again (measured: every diagnosis on a fresh cache
+# compiled 2-3 forms it had compiled before, 20-30 s each, in the second round's scores).
+# With every count of the same number of digits the text order is the creation order, which
+# within a model is fixed.
+CONSTANT_COUNT_START = 10**12
+
+
+def stable_constant_counts() -> None:
+    """Let UFL Constants be counted from ``CONSTANT_COUNT_START`` on (idempotent): call it
+    before a model creates its Constants."""
+    from ufl.constant import Constant as C
+
+    if hasattr(C, "_globalcount"):  # UFL <= 2023: an integer
+        C._globalcount = max(C._globalcount, CONSTANT_COUNT_START)
+        return
+    # UFL 2024: an itertools.count per class, None before the first Constant
+    nxt = CONSTANT_COUNT_START if C._counter is None else next(C._counter)
+    C._counter = itertools.count(max(nxt, CONSTANT_COUNT_START))
 
 
 _FORM_KW = inspect.signature(fem.form).parameters
@@ -153,11 +181,13 @@ def quadrature_space(mesh, degree: int, n: int):
         import basix.ufl
 
         el = basix.ufl.quadrature_element(mesh.basix_cell(), value_shape=(n,), degree=degree)
-        V = fem.functionspace(mesh, el)
+        with jit_cache.compiling(mesh=mesh):
+            V = fem.functionspace(mesh, el)
         return V, V.element.interpolation_points()
     el = ufl.VectorElement("Quadrature", mesh.ufl_cell(), degree=degree, dim=n,
                            quad_scheme="default")
-    V = fem.FunctionSpace(mesh, el)
+    with jit_cache.compiling(mesh=mesh):
+        V = fem.FunctionSpace(mesh, el)
     cell = basix.cell.string_to_type(mesh.topology.cell_type.name)
     points, _ = basix.make_quadrature(cell, degree)
     return V, points

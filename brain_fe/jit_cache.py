@@ -12,7 +12,9 @@ things went wrong with that here:
 * a process stopped during a compilation leaves its C file without the mark, and every
   later process waited for a compilation that never ends and failed the same way.
 
-So every compilation (:func:`compiling`) holds an exclusive lock on a file of the cache
+So every compilation (:func:`compiling`: of a form, an expression, or the element and
+dofmap of a function space, which DOLFINx compiles when the space is made) holds an
+exclusive lock on a file of the cache
 (``flock``: released when the process ends, however it ends): while it is held no other
 process of this project is compiling, so a C file without its mark was left by a stopped
 process; it is moved aside (FFCx's own ``.c.failed``) and the form compiled afresh. On a
@@ -69,10 +71,11 @@ def unfinished(cache: Path) -> list[Path]:
 
 
 @contextlib.contextmanager
-def compiling(expr):
-    """Hold the cache's lock around the compilation of ``expr`` (a form or an expression;
-    on rank 0 of its mesh) after moving aside what stopped processes left unfinished."""
-    if _rank(expr) != 0:
+def compiling(expr=None, *, mesh=None):
+    """Hold the cache's lock around the compilation of ``expr`` (a form or an expression)
+    or of the element and dofmap of a function space on ``mesh`` (on rank 0 of the mesh)
+    after moving aside what stopped processes left unfinished."""
+    if (mesh.comm.rank if mesh is not None else _rank(expr)) != 0:
         yield
         return
     cache = cache_dir()

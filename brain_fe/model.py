@@ -72,6 +72,7 @@ class ForwardModel:
         self.V = _compat.vector_space(msh, degree, 3)
         self.u = fem.Function(self.V, name="displacement")
         st = _compat.scalar_type()
+        _compat.stable_constant_counts()  # the forms' signatures, whatever came before
         self.constants = {p: fem.Constant(msh, st(1.0))
                           for p in self.material.parameters() + EndConditions.parameters(ends)}
         self.c_dt = fem.Constant(msh, st(1.0))  # time increment of the (sub)step [s]

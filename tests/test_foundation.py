@@ -78,3 +78,40 @@ def test_a_compilation_left_unfinished_is_done_again(tmp_path):
     assert "left unfinished by a stopped process" in again.stderr
     for p in set(cache.glob(c_file.stem + "*")):  # leave the cache as it was
         p.unlink()
+
+
+def _set_constant_count(n: int) -> int:
+    """Let UFL count the next Constant as ``n`` (UFL 2022: an integer; 2024: a counter), as
+    in a process that had made n Constants before; returns the count it replaces."""
+    import itertools
+
+    from ufl.constant import Constant
+
+    if hasattr(Constant, "_globalcount"):
+        old, Constant._globalcount = Constant._globalcount, n
+    else:
+        old = 0 if Constant._counter is None else next(Constant._counter)
+        Constant._counter = itertools.count(n)
+    return old
+
+
+def test_a_model_compiles_to_the_same_forms_whatever_was_built_before():
+    """The JIT cache's key is the form's UFL signature. UFL orders the operands of sums
+    canonically and compares Constants by their repr, which ends in a global count, as
+    text: a model whose Constants straddle a power of ten (count 97 to 105: '100' sorts
+    before '97') got another signature than the same model built first, and compiled again
+    (every diagnosis on a fresh cache did, 20-30 s a form). Built after 97 Constants, a
+    two-term model must have the signature it has when built first."""
+    from brain_fe import geometry
+    from brain_fe.model import ForwardModel
+
+    def signature(count: int) -> str:
+        _set_constant_count(count)
+        g = geometry.axisymmetric(refinement=1, comm=MPI.COMM_SELF)  # a mesh of its own
+        return ForwardModel(g, n_terms=2).residual_ufl.signature()
+
+    before = _set_constant_count(0)
+    try:
+        assert signature(97) == signature(0)  # 9 Constants, at 97-105 or at 0-8
+    finally:  # later Constants count on from above every earlier one
+        _set_constant_count(max(before, _set_constant_count(0)))
