@@ -218,3 +218,36 @@ def test_one_rate_stiffness_trend(seed):
     assert out["trend"]["significant"]
     clean = remaining(obs, white, nm, prediction=p)
     assert not clean["trend"]["significant"]
+
+
+@pytest.mark.parametrize("seed", [9, 16])
+def test_noise_model_finds_a_drift_its_first_start_cannot(seed, monkeypatch):
+    """White (SD 1) + wander (SD 0.5, 5 s) + a drift of 0.01 per s over 120 s at 0.5 s: the
+    likelihood is flat in log drift far below the white noise, and from the small drift of
+    the first start alone the fit stays there (these seeds: -2 log L more than 1 above
+    the best point of a grid).  The maximum-likelihood model must be at least as likely
+    as every point of a grid over the four parameters (an optimiser-free reference;
+    tolerance 0.01 in -2 log L)."""
+    import itertools
+
+    from diagnosis import noise
+    from diagnosis.noise import ChannelNoise, NoiseModel
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 120.0, 0.5)
+    r = rig_noise(t, RigNoise(white=1.0, drift=0.01, wander=0.5, wander_s=5.0), rng)
+    obs = _obs(t, r, 40)
+    ((key, _),) = fit_noise(obs, r).params.items()
+
+    def nll(cn: ChannelNoise) -> float:
+        return NoiseModel(obs, {key: cn}).nll(r)
+
+    grid = min(nll(ChannelNoise(white=w, corr=c, corr_s=cs, drift=d))
+               for w, c, cs, d in itertools.product(
+                   np.geomspace(0.7, 1.3, 13), (1e-6, 0.25, 0.5, 0.75), (2.5, 5.0, 9.75),
+                   (1e-8, 0.0025, 0.005, 0.0075, 0.01, 0.015)))
+    (fitted,) = fit_noise(obs, r).params.values()
+    assert nll(fitted) <= grid + 0.01
+    monkeypatch.setattr(noise, "DRIFT_STARTS", noise.DRIFT_STARTS[:1])
+    (first_only,) = fit_noise(obs, r).params.values()
+    assert nll(first_only) > grid + 1.0
