@@ -426,14 +426,14 @@ def _cannot_tell(status: str, rem: dict, nm: NoiseModel, stated: dict | None) ->
     loud = []
     for k, v in nm.describe().items():
         sd = stated.get(k.rsplit("/", 1)[1])
-        if sd is not None and v["correlated"] > WANDER_FACTOR * sd:
-            loud.append((k, v["correlated"], sd))
+        if sd is not None and v["slow_sd"] > WANDER_FACTOR * sd:
+            loud.append((k, v["slow_sd"], sd))
     if not loud:
         return ""
-    k, corr, sd = max(loud, key=lambda x: x[1] / x[2])
+    k, slow, sd = max(loud, key=lambda x: x[1] / x[2])
     return (f"without a repeated ramp, the residual of {k} passes as noise only with a "
-            f"wander of SD {corr:.3g}, {corr / sd:.0f} times the stated instrument noise "
-            f"{sd:.3g}: a smooth misfit and wander cannot be told apart here")
+            f"wander and drift of SD {slow:.3g}, {slow / sd:.0f} times the stated "
+            f"instrument noise {sd:.3g}: a smooth misfit and wander cannot be told apart here")
 
 
 def decide(chosen: list, systematic: bool, rms_before: float, rms_after: float

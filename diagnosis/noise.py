@@ -226,8 +226,15 @@ class NoiseModel:
         return out
 
     def describe(self) -> dict:
+        """Per series: the parameters, and ``slow_sd``, the SD of its slow part (wander and
+        drift together) as an RMS over the series' times, comparable with a stated
+        instrument noise."""
+        span = {}
+        for s in self.series:
+            span[s.key] = max(span.get(s.key, 0.0), float(np.sqrt(np.mean(s.ramp**2))))
         return {f"{c}/{ch}": {"white": n.white, "correlated": n.corr,
-                              "correlation_time_s": n.corr_s, "drift_per_s": n.drift}
+                              "correlation_time_s": n.corr_s, "drift_per_s": n.drift,
+                              "slow_sd": math.hypot(n.corr, n.drift * span.get((c, ch), 0.0))}
                 for (c, ch), n in self.params.items()}
 
 

@@ -251,3 +251,21 @@ def test_noise_model_finds_a_drift_its_first_start_cannot(seed, monkeypatch):
     monkeypatch.setattr(noise, "DRIFT_STARTS", noise.DRIFT_STARTS[:1])
     (first_only,) = fit_noise(obs, r).params.values()
     assert nll(first_only) > grid + 1.0
+
+
+def test_slow_part_of_the_noise_counts_wander_and_drift():
+    """``slow_sd`` = hypot(wander SD, drift x RMS of (t - t0) over the series): for samples
+    every 0.5 s from 0 to 119.5 s the RMS of t is 0.5 sqrt((n - 1)(2n - 1) / 6) with
+    n = 240 (closed form of the sum of squares); to 1e-12."""
+    from diagnosis.noise import ChannelNoise, NoiseModel
+
+    t = np.arange(0.0, 120.0, 0.5)
+    obs = _obs(t, np.zeros_like(t), 40)
+    ((key, _),) = fit_noise(obs, np.random.default_rng(0).normal(size=t.size)).params.items()
+    n = t.size
+    rms_t = 0.5 * np.sqrt((n - 1) * (2 * n - 1) / 6)
+    (d,) = NoiseModel(obs, {key: ChannelNoise(white=1.0, corr=0.3, drift=0.002)}
+                      ).describe().values()
+    assert d["slow_sd"] == pytest.approx(np.hypot(0.3, 0.002 * rms_t), rel=1e-12)
+    (w,) = NoiseModel(obs, {key: ChannelNoise(white=1.0)}).describe().values()
+    assert w["slow_sd"] == 0.0
