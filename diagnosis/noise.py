@@ -395,10 +395,10 @@ def _fit_channel(mine, r, w0, fixed_white, dt, ramp, correlated, drift) -> Chann
     if not names:
         return make(np.array([]))
     best = None
-    for factors in DRIFT_STARTS if drift else DRIFT_STARTS[:1]:
+    for factor in DRIFT_STARTS if drift else DRIFT_STARTS[:1]:
         x0 = x_start.copy()
         if drift:
-            x0[names.index("drift")] += np.log(factors)
+            x0[names.index("drift")] += np.log(factor)
         res = minimize(nll, np.clip(x0, lo, hi), method="L-BFGS-B",
                        bounds=list(zip(lo, hi, strict=True)), options={"maxiter": 200})
         if best is None or res.fun < best.fun - 1e-9:  # a tie keeps the first start

@@ -237,7 +237,7 @@ def test_noise_model_finds_a_drift_its_first_start_cannot(seed, monkeypatch):
     t = np.arange(0.0, 120.0, 0.5)
     r = rig_noise(t, RigNoise(white=1.0, drift=0.01, wander=0.5, wander_s=5.0), rng)
     obs = _obs(t, r, 40)
-    ((key, _),) = fit_noise(obs, r).params.items()
+    ((key, fitted),) = fit_noise(obs, r).params.items()
 
     def nll(cn: ChannelNoise) -> float:
         return NoiseModel(obs, {key: cn}).nll(r)
@@ -246,7 +246,6 @@ def test_noise_model_finds_a_drift_its_first_start_cannot(seed, monkeypatch):
                for w, c, cs, d in itertools.product(
                    np.geomspace(0.7, 1.3, 13), (1e-6, 0.25, 0.5, 0.75), (2.5, 5.0, 9.75),
                    (1e-8, 0.0025, 0.005, 0.0075, 0.01, 0.015)))
-    (fitted,) = fit_noise(obs, r).params.values()
     assert nll(fitted) <= grid + 0.01
     monkeypatch.setattr(noise, "DRIFT_STARTS", noise.DRIFT_STARTS[:1])
     (first_only,) = fit_noise(obs, r).params.values()
