@@ -10,6 +10,9 @@
   interruption, say) diagnoses only the specimens without a result, and one with other
   settings or another engine is refused.
   ``DIR/diagnosis.json`` and ``DIR/summary.md`` gather the verdicts.
+* ``check_digits``: every specimen is diagnosed a second time with its recorded numbers
+  changed in their last digits; a verdict that moves is *cannot tell*
+  (:mod:`diagnosis.determinacy`).
 """
 
 from __future__ import annotations
@@ -32,24 +35,28 @@ from recordings.rheometer_segments import ramp_ids
 from recordings.tables import read_recordings, read_specimens
 from simulators.fe import FESimulator
 
-from . import report
+from . import determinacy, report
 from .engine import ENGINE_VERSION, diagnose
 
 log = logging.getLogger(__name__)
 
 
 def _diagnose_one(name, rec, specs, target: Path, *, refinement, effects, nu0, noise, comm,
-                  progress) -> dict:
+                  progress, check_digits=False) -> dict:
     row = specs.set_index("specimen").loc[name]
     obs = observations(rec[rec.specimen == name])
     obs.attrs["radius_mm"] = float(row.radius_mm)
     R, H = float(row.radius_mm), float(row.height_mm)
     ends = str(row.get("ends", "glued"))
-    sim = FESimulator(obs, R, H, refinement=refinement, nu0=nu0, ends=ends)
-    fine = FESimulator(obs, R, H, refinement=refinement + 1, nu0=nu0, ends=ends)
     with as_progress(progress, None, f"diagnose {name}", "fit", comm) as bar:
-        d = diagnose(sim, obs, fine_sim=fine, effects=effects, comm=comm, noise=noise,
-                     progress=lambda what: bar.update(1, what))
+        def run(obs):
+            sim = FESimulator(obs, R, H, refinement=refinement, nu0=nu0, ends=ends)
+            fine = FESimulator(obs, R, H, refinement=refinement + 1, nu0=nu0, ends=ends)
+            return diagnose(sim, obs, fine_sim=fine, effects=effects, comm=comm, noise=noise,
+                            progress=lambda what: bar.update(1, what))
+        d = run(obs)
+        if check_digits:
+            determinacy.check(d, run)
     log.info("%s: verdict %s", name, d.verdict)
     if comm.rank == 0:
         return report.write(d, target, title=f"Diagnosis of specimen {name}")
@@ -59,7 +66,8 @@ def _diagnose_one(name, rec, specs, target: Path, *, refinement, effects, nu0, n
 def diagnose_recordings(recordings: str, specimens: str, out: str, *,
                         specimen: str | None = None, refinement: int = 1,
                         effects=None, nu0: float = 0.49, noise: dict | None = None,
-                        comm=MPI.COMM_WORLD, progress=None) -> dict:
+                        check_digits: bool = False, comm=MPI.COMM_WORLD,
+                        progress=None) -> dict:
     """Diagnose every specimen of a recordings table (see the module docstring).
 
     Returns ``{specimen: diagnosis.json content}`` on rank 0 (every specimen, reused or
@@ -72,7 +80,7 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
             raise ValueError(f"{recordings}: no recordings of specimen {specimen!r}")
         names = [specimen]
     out = Path(out)
-    kw = dict(refinement=refinement, effects=effects, nu0=nu0)
+    kw = dict(refinement=refinement, effects=effects, nu0=nu0, check_digits=check_digits)
     if len(names) == 1:
         res = _diagnose_one(names[0], rec, specs, out, comm=comm, progress=progress,
                             noise=noise_of(noise, names[0]), **kw)
@@ -81,6 +89,8 @@ def diagnose_recordings(recordings: str, specimens: str, out: str, *,
     config = {"engine": ENGINE_VERSION,
               "refinement": refinement, "effects": sorted(effects) if effects else None,
               "nu0": nu0, "noise": noise, "recordings": str(Path(recordings).resolve())}
+    if check_digits:  # the answers differ (cannot tell where the digits move them)
+        config["check_digits"] = True
     if "ends" in specs:  # the end conditions are part of the model: recorded when given
         config["ends"] = {n: e for n, e in zip(specs.specimen, specs.ends, strict=True)
                           if e != "glued" and n in names}

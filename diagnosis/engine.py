@@ -119,6 +119,9 @@ class Diagnosis:
     # evaluations that failed for a reason other than the model (a verdict that may be
     # incomplete; the notes say so)
     internal_errors: list = field(default_factory=list)
+    # the verdict of a second diagnosis with the recorded numbers changed in their last
+    # digits ({} when not checked; diagnosis.determinacy)
+    last_digits: dict = field(default_factory=dict)
 
     @property
     def verdict(self) -> str:
@@ -177,6 +180,7 @@ class Diagnosis:
             "closest": self.closest() if self.status == "unexplained" else [],
             "tried": list(self.tried),
             "cannot_tell": self.cannot_tell,
+            "last_digits": self.last_digits,
             "ranking": self.ranking,
             "rounds": [{"from": "+".join(r.current) or "base", "added": r.added,
                         "dropped": r.dropped, "table": r.table} for r in self.rounds],

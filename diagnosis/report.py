@@ -57,6 +57,9 @@ def _write(d, out: Path, title: str) -> dict:
               else STATUS_TEXT[d.status]) + ".", ""]
     if d.cannot_tell:
         lines += [f"**Cannot tell**: {d.cannot_tell}.", ""]
+    if d.last_digits.get("same"):
+        lines += ["The same verdict with the recorded numbers changed in their last digits "
+                  "(checked).", ""]
     lines += [f"Residual RMS / noise: {res['rms_before']:.2f} (base) -> "
               f"{res['rms_after']:.2f} (after modelling); 1 = noise level.", "",
               "## Where the base model misfits", "",

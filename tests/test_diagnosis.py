@@ -140,3 +140,89 @@ def test_glued_cube_nests_homogeneous_and_differentiates():
         yp, _ = sim.predict(dict(vv, **{n: vv[n] + h}), [])
         ym, _ = sim.predict(dict(vv, **{n: vv[n] - h}), [])
         assert np.max(np.abs((yp - ym) / (2 * h) - J[:, j])) < 1e-4 * np.max(np.abs(J[:, j])), n
+
+
+def test_last_digits_change_only_the_recorded_numbers_and_little():
+    """diagnosis.determinacy.last_digits: control, value and time move by a few units in
+    the last place (relative SD 4e-16), reproducibly; the protocol columns do not."""
+    import pandas as pd
+
+    from diagnosis.determinacy import RELATIVE_SD, last_digits
+
+    rng = np.random.default_rng(0)
+    obs = pd.DataFrame({"curve": "c", "channel": "stress", "cycle": 1, "branch": "loading",
+                        "amplitude": 0.15, "control": 1 - rng.uniform(0, 0.15, 200),
+                        "value": rng.normal(0, 1, 200), "time_s": np.arange(200.0) + 0.5})
+    obs.attrs["radius_mm"] = 4.0
+    a, b = last_digits(obs), last_digits(obs)
+    pd.testing.assert_frame_equal(a, b)  # seeded
+    assert a.attrs == obs.attrs
+    for c in ("curve", "channel", "cycle", "branch", "amplitude"):
+        assert a[c].tolist() == obs[c].tolist()
+    for c in ("control", "value", "time_s"):
+        rel = a[c].to_numpy() / obs[c].to_numpy() - 1
+        assert np.mean(rel != 0) > 0.5, c
+        assert np.abs(rel).max() < 6 * RELATIVE_SD + 2.0**-52, c
+
+
+def test_a_verdict_the_last_digits_move_is_cannot_tell():
+    """diagnosis.determinacy.check: the second diagnosis runs on the perturbed recordings;
+    a verdict or status that moves is reported as cannot tell beside what was there."""
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from diagnosis import determinacy
+
+    obs = pd.DataFrame({"control": [1.0, 0.9], "value": [0.0, -1.0], "time_s": [0.0, 1.0]})
+
+    def first():
+        return SimpleNamespace(obs=obs, verdict="viscoelastic", status="explained",
+                               cannot_tell="", last_digits={})
+
+    seen = []
+
+    def same(o):
+        seen.append(o)
+        return SimpleNamespace(verdict="viscoelastic", status="explained")
+
+    d = first()
+    assert determinacy.check(d, same)["same"] and d.cannot_tell == ""
+    assert not seen[0]["value"].equals(obs["value"])  # the perturbed recordings
+    d = first()
+    d.cannot_tell = "slow wander"
+    rec = determinacy.check(d, lambda o: SimpleNamespace(verdict="artefacts+viscoelastic",
+                                                         status="partially explained"))
+    assert not rec["same"] and rec["verdict"] == "artefacts+viscoelastic"
+    assert d.cannot_tell.startswith("slow wander; the verdict changes when the recorded "
+                                    "numbers change in their last digits (viscoelastic "
+                                    "(explained) -> artefacts+viscoelastic (partially "
+                                    "explained))")
+
+
+def test_check_digits_end_to_end(tmp_path):
+    """`diagnose_recordings(check_digits=True)` on a small control specimen (from a finer
+    mesh, 1 % noise): diagnosed twice, the same verdict, said in the JSON and the report."""
+    import pandas as pd
+
+    from brain_fe.geometry import make as make_geometry
+    from diagnosis.batch import diagnose_recordings
+    from diagnosis.benchmark import _recordings, full_protocols
+
+    vals = {"mu_0": 1.0, "alpha_0": -15.0}
+    g = make_geometry("axisymmetric", 4.0, 5.0, 2, comm=MPI.COMM_SELF)
+    rec = _recordings(vals, full_protocols(1, 0.05)[:2], g, "S", 0.01,
+                      np.random.default_rng(3))
+    rec.to_csv(tmp_path / "recordings.csv", index=False)
+    pd.DataFrame({"specimen": ["S"], "region": ["CX"], "brain": ["B"], "radius_mm": [4.0],
+                  "height_mm": [5.0]}).to_csv(tmp_path / "specimens.csv", index=False)
+    out = tmp_path / "out"
+    res = diagnose_recordings(str(tmp_path / "recordings.csv"),
+                              str(tmp_path / "specimens.csv"), str(out),
+                              effects=["viscoelastic", "artefacts"], check_digits=True,
+                              comm=MPI.COMM_SELF)
+    d = json.loads((out / "diagnosis.json").read_text())
+    assert res["S"]["verdict"] == d["verdict"] == "none"
+    assert d["last_digits"] == {"relative_sd": 4e-16, "seed": 1, "verdict": "none",
+                                "status": "none", "same": True}
+    assert "last digits (checked)" in (out / "report.md").read_text()

@@ -29,7 +29,8 @@ def _tables(tmp_path):
 
 
 def _stand_in(calls):
-    def one(name, rec, specs, target, *, refinement, effects, nu0, noise, comm, progress):
+    def one(name, rec, specs, target, *, refinement, effects, nu0, noise, comm, progress,
+            check_digits):
         calls.append((name, noise))
         if name == "a/2":
             raise UnsolvableStart("the base model cannot be solved along this protocol")

@@ -35,6 +35,11 @@ def add(sub) -> None:
                    "JSON file {specimen: {CH: SD}} (the noise.json of `brainmech import`); "
                    "held fixed while wander and drift are still fitted (default: estimated "
                    "from the recordings)")
+    p.add_argument("--check-digits", action="store_true",
+                   help="diagnose every specimen a second time with its recorded numbers "
+                   "changed in their last digits (relative 4e-16); a verdict that moves is "
+                   "reported as cannot tell: not determined by the recordings (twice the "
+                   "time)")
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(run=run)
 
@@ -54,6 +59,8 @@ def run(args) -> int:
         check_effects(args.effects, "cube")
         if args.noise:
             raise CLIError("--noise applies to --recordings (the Budday curves are averages)")
+        if args.check_digits:
+            raise CLIError("--check-digits applies to --recordings")
         res = diagnose_budday(args.budday or None, args.out, nu0=args.nu0)
         say([f"{r}: verdict {v['verdict']}, RMS/noise {v['rms_before']:.2f} -> "
              f"{v['rms_after']:.2f}" for r, v in res.items()] + [f"wrote {args.out}"])
@@ -66,7 +73,7 @@ def run(args) -> int:
     res = diagnose_recordings(args.recordings, args.specimens, args.out,
                               specimen=args.specimen, refinement=args.refinement,
                               effects=args.effects, nu0=args.nu0, noise=args.noise,
-                              progress=True)
+                              check_digits=args.check_digits, progress=True)
     if MPI.COMM_WORLD.rank == 0:
         say([f"{n}: not diagnosed: {r['error']}" if "error" in r else
              f"{n}: verdict {r['verdict']}, RMS/noise {r['rms_before']:.2f} -> "
