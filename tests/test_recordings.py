@@ -375,3 +375,35 @@ def test_series_far_below_amplitude_is_warned_not_rejected(tmp_path, caplog):
         out = read_recordings(_csv(tmp_path, rec, "r.csv"), require_specimens=False)
     assert ("S1", "torsion_30.00") in series(out)
     assert "(S1, torsion, amplitude 30) reaches only 0.3 of its amplitude" in caplog.text
+
+
+def test_last_digit_perturbation_changes_only_the_measured_numbers(tmp_path):
+    """benchmarks/last_digits.py (is a diagnosis determined by the data?): every measured
+    number moves by at most a few units in the last place, most move, and the protocol,
+    the flags and the empty cells stay exactly as written."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "last_digits.py"
+    spec = importlib.util.spec_from_file_location("last_digits", path)
+    last_digits = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(last_digits)
+
+    ref = _recordings()
+    ref["in_contact"] = (np.arange(len(ref)) % 2).astype(float)  # a 0/1 flag column
+    src = _csv(tmp_path, ref, "recordings.csv")
+    changed = last_digits.perturb(Path(src), tmp_path / "ulp.csv", seed=3)
+    specimens = read_specimens(_csv(tmp_path, _specimens(), "specimens.csv"))
+    a = read_recordings(src, specimens)
+    b = read_recordings(str(tmp_path / "ulp.csv"), specimens)
+    for c in ("specimen", "test", "amplitude", "cycle", "branch", "in_contact"):
+        assert a[c].tolist() == b[c].tolist(), c
+    measured = ["time_s", "stretch", "shear", "nominal_stress_kPa", "torque_mNmm",
+                "axial_force_mN"]
+    x, y = a[measured].to_numpy(), b[measured].to_numpy()
+    np.testing.assert_array_equal(np.isnan(x), np.isnan(y))
+    nonzero = np.isfinite(x) & (x != 0)
+    assert changed == int((x[nonzero] != y[nonzero]).sum()) > 0.5 * nonzero.sum()
+    # a relative SD of 4e-16: no change beyond 10 SD (plus the rounding to a double)
+    assert np.max(np.abs(y[nonzero] / x[nonzero] - 1)) < 10 * 4e-16 + 2.0**-52
+    assert (y[x == 0] == 0).all()
