@@ -68,6 +68,10 @@ class Fit:
     nfev: int
     stderr: dict = field(default_factory=dict)
     converged: bool = True  # False when the evaluation budget ended the fit
+    # trial points the model could not be solved at (refused: the trust region shrank
+    # there); a fit that met many may have stopped at the edge of what the model can
+    # follow instead of at the optimum, with a tolerance reached all the same
+    refused: int = 0
     jacobian: np.ndarray | None = None  # d prediction / d parameters at the optimum
     seconds: float = 0.0  # wall time of the fit
 
@@ -106,6 +110,7 @@ def fit(sim, obs: pd.DataFrame, sigma: np.ndarray, start: dict, names: list, *,
     fixed = {k: v for k, v in start.items() if k not in names}
     value = obs["value"].to_numpy(float)
     pred = LastCall(sim)
+    refused = set()  # distinct trial points the model could not solve
 
     def evaluate(x):
         return pred({**fixed, **dict(zip(names, x, strict=True))}, names)
@@ -116,6 +121,7 @@ def fit(sim, obs: pd.DataFrame, sigma: np.ndarray, start: dict, names: list, *,
         except RuntimeError as exc:  # a trial point the model cannot follow (Newton fails)
             # is refused: non-finite residuals make the trust region shrink and try again
             log.info("fit of %s: trial point refused (%s)", effect, exc)
+            refused.add(tuple(np.asarray(x, float)))
             return np.full(value.shape, np.inf)
 
     def jac(x):
@@ -136,7 +142,7 @@ def fit(sim, obs: pd.DataFrame, sigma: np.ndarray, start: dict, names: list, *,
     except np.linalg.LinAlgError:  # pragma: no cover
         pass
     return Fit(effect, list(names), vals, float(z @ z), len(z), p.y, z, int(res.nfev), stderr,
-               converged=res.status > 0, jacobian=p.jacobian,
+               converged=res.status > 0, refused=len(refused), jacobian=p.jacobian,
                seconds=time.perf_counter() - t0)
 
 

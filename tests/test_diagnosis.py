@@ -226,3 +226,44 @@ def test_check_digits_end_to_end(tmp_path):
     assert d["last_digits"] == {"relative_sd": 4e-16, "seed": 1, "verdict": "none",
                                 "status": "none", "same": True}
     assert "last digits (checked)" in (out / "report.md").read_text()
+
+
+def test_a_fit_against_what_the_model_can_solve_says_so():
+    """A model that cannot be solved beyond mu = 2 fitted to data of mu = 3: the fit ends
+    at the edge (here on its budget; on real double compressions with a tolerance met)
+    and counts the trial points refused, and the diagnosis notes that its parameters are
+    not determined there.  Without the edge the same fit reaches mu = 3 and refuses none."""
+    import pandas as pd
+
+    from brain_fe.solver import ConvergenceError
+    from diagnosis.effects import BASE_NAMES
+    from diagnosis.engine import edge_notes
+    from diagnosis.fitting import fit
+    from simulators.base import Prediction
+
+    x = np.linspace(0.1, 1.0, 12)
+
+    class Edge:
+        kind = "fe"
+
+        def __init__(self, edge):
+            self.edge = edge
+
+        def predict(self, values, wrt):
+            v = {str(k): val for k, val in values.items()}
+            if v["mu_0"] > self.edge:
+                raise ConvergenceError(f"Newton failed at mu = {v['mu_0']:.3f}")
+            y = v["mu_0"] * x + 0.01 * v["alpha_0"] * x**2
+            J = np.column_stack([x, 0.01 * x**2])[:, [["mu_0", "alpha_0"].index(str(w))
+                                                     for w in wrt]]
+            return Prediction(y, J, tuple(wrt))
+
+    obs = pd.DataFrame({"value": 3.0 * x + 0.01 * 5.0 * x**2})
+    start = {"mu_0": 1.0, "alpha_0": 5.0}
+    free = fit(Edge(np.inf), obs, np.full(x.size, 0.01), start, list(BASE_NAMES))
+    assert free.refused == 0 and abs(free.values[BASE_NAMES[0]] - 3.0) < 1e-6
+    assert edge_notes(free, free) == []
+    edge = fit(Edge(2.0), obs, np.full(x.size, 0.01), start, list(BASE_NAMES))
+    assert edge.refused >= 1 and edge.values[BASE_NAMES[0]] <= 2.0
+    notes = edge_notes(edge, free)
+    assert len(notes) == 1 and notes[0].startswith(f"the base fit met {edge.refused} trial")
