@@ -309,7 +309,12 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                          added, r["effect"])} for r in sig[1:]
                     if r["delta_bic"] - sig[0]["delta_bic"] < bic_margin]
             with _sharing(sim, comm):  # one fit at a time: the ranks share its curves
-                new = _complete(ctx, rnd.fits[added], [*chosen, added])
+                try:
+                    new = _complete(ctx, rnd.fits[added], [*chosen, added])
+                except MODEL_FAILURES as exc:  # the ranking fit stands, as for contenders
+                    # (a real double compression was lost whole to a Newton failure here)
+                    log.warning("completing the fit of %s failed: %s", added, exc)
+                    new = rnd.fits[added]
                 rnd.added = added
                 chosen = [*chosen, added]
                 current, chosen, dropped = _retest(ctx, new, chosen, rnd.noise)
