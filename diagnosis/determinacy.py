@@ -1,12 +1,12 @@
 """Is a verdict determined by the recordings?  Diagnose again with their last digits changed.
 
-A diagnosis is reproducible (the same recordings, diagnosed in the same order, give
-bit-identical results; one specimen alone and in a batch can differ, docs/real-data.md),
-but it is not continuous: its fits stop at a tolerance, its FE solves converge to one,
-and some of its choices are between near-equal optima (the noise likelihood of a single
-ramp can take a smooth misfit for a slow drift or not, within 0.01 of -2 log L).  A change of the recorded numbers in their last digits, far below any
-instrument's resolution, can then move the verdict (docs/real-data.md: measured on the
-rheometer exports).  Such a verdict is a matter of rounding, not of the data.
+A diagnosis is reproducible (the same recordings give bit-identical results, alone or in
+a batch), but it is not continuous: its fits stop at a tolerance, its FE solves converge
+to one, and some of its choices are between near-equal optima (the noise likelihood of a
+single ramp can take a smooth misfit for a slow drift or not, within 0.01 of -2 log L).
+A change of the recorded numbers in their last digits, far below any instrument's
+resolution, can then move the verdict (docs/real-data.md: measured on the rheometer
+exports).  Such a verdict is a matter of rounding, not of the data.
 
 :func:`check` runs the diagnosis a second time on :func:`last_digits` of the observations
 and, where the verdict or its status moves, says *cannot tell* (``brainmech diagnose
