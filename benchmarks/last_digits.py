@@ -29,8 +29,9 @@ import random
 import sys
 from pathlib import Path
 
+from diagnosis.determinacy import RELATIVE_SD  # the size `diagnose --check-digits` uses
+
 PROTOCOL = ("specimen", "test", "amplitude", "cycle", "branch")
-RELATIVE_SD = 4e-16  # ~2 units in the last place of a double (2**-52 = 2.2e-16)
 
 
 def _is_int(cell: str) -> bool:

@@ -309,12 +309,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                          added, r["effect"])} for r in sig[1:]
                     if r["delta_bic"] - sig[0]["delta_bic"] < bic_margin]
             with _sharing(sim, comm):  # one fit at a time: the ranks share its curves
-                try:
-                    new = _complete(ctx, rnd.fits[added], [*chosen, added])
-                except MODEL_FAILURES as exc:  # the ranking fit stands, as for contenders
-                    # (a real double compression was lost whole to a Newton failure here)
-                    log.warning("completing the fit of %s failed: %s", added, exc)
-                    new = rnd.fits[added]
+                new = _completed(ctx, rnd.fits[added], [*chosen, added])
                 rnd.added = added
                 chosen = [*chosen, added]
                 current, chosen, dropped = _retest(ctx, new, chosen, rnd.noise)
@@ -576,6 +571,17 @@ def _complete(ctx: Context, f: Fit, effects: list) -> Fit:
     return more if more.chi2 <= f.chi2 else f
 
 
+def _completed(ctx: Context, f: Fit, effects: list) -> Fit:
+    """:func:`_complete`, or ``f`` itself where the model fails in the completion: the
+    ranking fit stands (a real double compression was once lost whole to a Newton failure
+    in completing the winner's fit)."""
+    try:
+        return _complete(ctx, f, effects)
+    except MODEL_FAILURES as exc:
+        log.warning("completing the fit of %s failed: %s", effects[-1], exc)
+        return f
+
+
 def _judge(ctx: Context, rnd, current: Fit, m: int, stated) -> list:
     """The round's noise model (from its best fit's residual) and table; returns the
     significant rows, best first."""
@@ -594,11 +600,7 @@ def _complete_contenders(ctx: Context, rnd, chosen: list, sig: list) -> list:
     short = [e for e in near if not rnd.fits[e].converged] if len(near) > 1 else []
     if short:
         def run(e):
-            try:
-                return _complete(ctx, rnd.fits[e], [*chosen, e])
-            except MODEL_FAILURES as exc:  # the ranking fit stands
-                log.warning("completing the fit of %s failed: %s", e, exc)
-                return rnd.fits[e]
+            return _completed(ctx, rnd.fits[e], [*chosen, e])
 
         done = ctx.share(short, run, lambda e: rnd.fits[e].seconds)
         rnd.fits.update((e, f if f is not None else rnd.fits[e])  # None: internal error
