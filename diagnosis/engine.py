@@ -122,6 +122,9 @@ class Diagnosis:
     # the verdict of a second diagnosis with the recorded numbers changed in their last
     # digits ({} when not checked; diagnosis.determinacy)
     last_digits: dict = field(default_factory=dict)
+    # where the recordings leave the noise undetermined: per place (a round, the final
+    # model), the two noise models and what each decides (diagnosis.noise.NOISE_TIE)
+    noise_rivals: list = field(default_factory=list)
 
     @property
     def verdict(self) -> str:
@@ -194,6 +197,7 @@ class Diagnosis:
             "rms_unit": "noise standard deviations (1 = fit at the noise level)",
             "noise": {k: v["noise"] for k, v in self.rms(self.base).items()},
             "noise_model": self.noise.describe(),
+            "noise_rivals": self.noise_rivals,
             "rms_by_curve_before": self.rms(self.base),
             "rms_by_curve_after": self.rms(w),
             "base_parameters": _plain(self.base.values),
@@ -335,6 +339,13 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                      f"{100 * rms_final / rms_base:.0f} % of the base RMS misfit; an effect "
                      "is named only when it at least halves it")
     doubt = _cannot_tell(status, rem, final_noise, noise)
+    undetermined, rivals = noise_doubt(rounds, status, chosen, _rival_outcome(
+        obs, base, current, in_model, final_noise, alpha, bic_margin))
+    doubt = "; ".join(filter(None, [doubt, undetermined]))
+    if rivals and not undetermined:
+        notes.append("the recordings leave the slow part of the noise undetermined in "
+                     f"{', '.join(p['where'] for p in rivals)} (two noise models neither "
+                     "of which they rule out); every decision is the same under both")
     limits, masked = _limits(ctx, comm, current, in_model, chosen, J, final_noise,
                              effects)
     if rem["reproducible"]["repeats"] == "none":
@@ -360,7 +371,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     timings["noise_locate_decide"] = round(time.perf_counter() - t_end, 2)
     return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
                      ambiguous, disc, time.perf_counter() - t0, obs, notes, tried, doubt,
-                     timings, limits, masked, list(errors))
+                     timings, limits, masked, list(errors), noise_rivals=rivals)
 
 
 def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np.ndarray,
@@ -588,7 +599,62 @@ def _judge(ctx: Context, rnd, current: Fit, m: int, stated) -> list:
     leader = min(rnd.fits.values(), key=lambda f: f.chi2)
     rnd.noise = _noise_of(ctx.obs, leader, stated)
     rnd.table = compare(ctx, rnd, current, m, rnd.noise)
-    return [r for r in rnd.table if r["significant"]]
+    sig = [r for r in rnd.table if r["significant"]]
+    rival = rnd.noise.rival()
+    rnd.noise_rival = {}
+    if rival is not None:  # what the round would add under the other noise
+        alt = [r for r in compare(ctx, rnd, current, m, rival) if r["significant"]]
+        rnd.noise_rival = {"series": rnd.noise.describe_rivals(),
+                           "adds": sig[0]["effect"] if sig else None,
+                           "rival_adds": alt[0]["effect"] if alt else None}
+    return sig
+
+
+def _rival_outcome(obs, base: Fit, current: Fit, in_model: list, nm: NoiseModel, alpha,
+                   bic_margin) -> dict:
+    """The status and named effects of the final model under ``nm``'s rival noise (the
+    other optimum the recordings do not rule out), or {} when the noise is determined."""
+    rival = nm.rival()
+    if rival is None:
+        return {}
+    rem = remaining(obs, _residual(obs, current), rival, alpha=alpha, bic_margin=bic_margin,
+                    prediction=current.prediction)
+    sd = rival.sd()
+    status, named, _ = decide(in_model, rem["systematic"], _rms(obs, base, sd),
+                              _rms(obs, current, sd))
+    return {"series": nm.describe_rivals(), "status": status, "effects": sorted(named)}
+
+
+def noise_doubt(rounds: list, status: str, named: list, final: dict) -> tuple[str, list]:
+    """Where the noise the recordings leave undetermined decides: the cannot-tell text
+    ('' when every decision is the same under both noise models) and, per place with a
+    rival noise model, what it would decide (for diagnosis.json)."""
+    def series(d):
+        return "; ".join(f"{k}: slow SD {v['slow_sd']:.3g} or {v['rival_slow_sd']:.3g}, "
+                         f"{v['delta_m2logl']:.2g} apart in -2 log L" for k, v in d.items())
+
+    places, changes = [], []
+    for i, rnd in enumerate(rounds, 1):
+        r = rnd.noise_rival
+        if not r:
+            continue
+        places.append({"where": f"round {i}", **r})
+        if r["adds"] != r["rival_adds"]:
+            changes.append(f"round {i} would add {r['rival_adds'] or 'nothing'} instead of "
+                           f"{r['adds'] or 'nothing'} ({series(r['series'])})")
+    if final:
+        places.append({"where": "final", "series": final["series"], "status": status,
+                       "effects": sorted(named), "rival_status": final["status"],
+                       "rival_effects": final["effects"]})
+        if (final["status"], final["effects"]) != (status, sorted(named)):
+            changes.append(f"the final model would be {'+'.join(final['effects']) or '-'}, "
+                           f"{final['status']} instead of {'+'.join(sorted(named)) or '-'}, "
+                           f"{status} ({series(final['series'])})")
+    if not changes:
+        return "", places
+    return ("the recordings leave the slow part of the noise undetermined (two noise "
+            "models neither of which they rule out), and the answer depends on which: "
+            + "; ".join(changes)), places
 
 
 def _complete_contenders(ctx: Context, rnd, chosen: list, sig: list) -> list:

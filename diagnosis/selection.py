@@ -95,6 +95,9 @@ class Round:
     failed: list = field(default_factory=list)  # fitted but the model could not be solved
     unscored: list = field(default_factory=list)  # no design point could be solved
     seconds: dict = field(default_factory=dict)  # wall time of the round's stages
+    # when the recordings leave the noise undetermined (NoiseModel.rivals): the series,
+    # and the effect the round adds under the chosen noise and under the rival (or None)
+    noise_rival: dict = field(default_factory=dict)
 
     def timings(self) -> dict:
         """Wall time of the scores and fits [s] (with MPI: of the whole rank group) and

@@ -267,3 +267,28 @@ def test_a_fit_against_what_the_model_can_solve_says_so():
     assert edge.refused >= 1 and edge.values[BASE_NAMES[0]] <= 2.0
     notes = edge_notes(edge, free)
     assert len(notes) == 1 and notes[0].startswith(f"the base fit met {edge.refused} trial")
+
+
+def test_a_decision_that_follows_an_undetermined_noise_is_cannot_tell():
+    """diagnosis.engine.noise_doubt: a round that adds another effect under the rival noise
+    model, or a final status that differs, makes the answer *cannot tell* with both; the
+    same decisions under both give no doubt, only the places (diagnosis.json)."""
+    from types import SimpleNamespace
+
+    from diagnosis.engine import noise_doubt
+
+    series = {"torsion_0.10/torque": {"delta_m2logl": 0.012, "slow_sd": 0.15,
+                                      "rival_slow_sd": 6.3}}
+    same = SimpleNamespace(noise_rival={"series": series, "adds": "viscoelastic",
+                                        "rival_adds": "viscoelastic"})
+    quiet = SimpleNamespace(noise_rival={})
+    text, places = noise_doubt([same, quiet], "explained", ["viscoelastic"], {})
+    assert text == "" and [p["where"] for p in places] == ["round 1"]
+    moved = SimpleNamespace(noise_rival={**same.noise_rival, "rival_adds": None})
+    text, places = noise_doubt([moved], "explained", ["viscoelastic"], {})
+    assert "round 1 would add nothing instead of viscoelastic" in text
+    assert "slow SD 0.15 or 6.3" in text
+    final = {"series": series, "status": "unexplained", "effects": []}
+    text, places = noise_doubt([same], "explained", ["viscoelastic"], final)
+    assert "the final model would be -, unexplained instead of viscoelastic, explained" in text
+    assert places[-1]["rival_status"] == "unexplained"

@@ -268,3 +268,34 @@ def test_slow_part_of_the_noise_counts_wander_and_drift():
     assert d["slow_sd"] == pytest.approx(np.hypot(0.3, 0.002 * rms_t), rel=1e-12)
     (w,) = NoiseModel(obs, {key: ChannelNoise(white=1.0)}).describe().values()
     assert w["slow_sd"] == 0.0
+
+
+def _smooth_misfit(amplitude: float, seed: int = 0):
+    """One ramp of 40 points: white noise of SD 1 plus a half-sine misfit, with the
+    columns 1, t, t^2 kept out of the likelihood (REML, as a model's own parameters are)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(40.0)
+    r = rig_noise(t, RigNoise(white=1.0), rng) + amplitude * np.sin(np.pi * t / 40)
+    return _obs(t, r, 40), r, np.vander(t / 40, 3)
+
+
+def test_a_slow_noise_the_recordings_leave_open_is_kept_as_a_rival():
+    """A large smooth misfit on one ramp, its drift direction projected out: the likelihood
+    is flat along the drift, and the two drift starts end with slow SDs 2.7 times apart at
+    the same -2 log L (to 1e-6): the model keeps the other one as a rival (``rival()``
+    differs only in that series' parameters) instead of choosing by the last digits.
+    White noise alone: no rival."""
+    from diagnosis.noise import NOISE_TIE, RIVAL_FACTOR
+
+    obs, r, B = _smooth_misfit(30.0)
+    nm = fit_noise(obs, r, stated={"stress": 1.0}, systematic=B)
+    ((key, (rival, delta)),) = nm.rivals.items()
+    assert abs(delta) < 1e-6 < NOISE_TIE
+    d = nm.describe_rivals()[f"{key[0]}/{key[1]}"]
+    assert max(d["slow_sd"], d["rival_slow_sd"]) > RIVAL_FACTOR * min(d["slow_sd"],
+                                                                    d["rival_slow_sd"])
+    other = nm.rival()
+    assert other.params[key] == rival and other.params[key] != nm.params[key]
+    assert other.nll(r) != pytest.approx(nm.nll(r))  # the full likelihood sees it
+    obs, r, B = _smooth_misfit(0.0)
+    assert fit_noise(obs, r, stated={"stress": 1.0}, systematic=B).rival() is None
