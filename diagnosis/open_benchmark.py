@@ -240,6 +240,7 @@ def score(labels: dict, results: dict) -> dict:
                      "noise_kinds": "+".join(lab["noise_kinds"]),
                      "misfit": max(lab["base_misfit_over_noise"].values(), default=0.0),
                      "separable": separable(lab),
+                     "cannot_tell": bool(r.get("cannot_tell")),
                      "elapsed_s": r.get("elapsed_s", float("nan"))})
     df = pd.DataFrame(rows)
     out: dict = {"cases": len(df), "by_case": rows}
@@ -253,6 +254,11 @@ def score(labels: dict, results: dict) -> dict:
                        measured=int(df[df["kind"] == "pair"]["separable"].notna().sum()))
     out["control"]["false_alarms"] = int((df[df["kind"] == "control"]["verdict"] != "none"
                                           ).sum())
+    doubt = df[df["cannot_tell"]] if len(df) else df
+    out["cannot_tell"] = {"cases": len(doubt), "correct": int(doubt["correct"].sum()),
+                          "by_kind": {k: int((doubt["kind"] == k).sum()) for k in KINDS},
+                          "wrong": int((~df["correct"]).sum()) if len(df) else 0,
+                          "wrong_said": int((~doubt["correct"]).sum())}
     o = df[df["kind"] == "outside"]
     out["outside"]["not_explained"] = int((o["status"] != "explained").sum())
     explained = df[df["status"] == "explained"]
@@ -283,6 +289,16 @@ def _table(matrix: dict, corner: str) -> list[str]:
     return lines
 
 
+def _doubt_line(d: dict | None) -> str:
+    """The answers that carry a *cannot tell* (a reason the verdict may not hold)."""
+    if not d:
+        return "- *cannot tell* beside the verdict: not scored"
+    kinds = ", ".join(f"{k} {n}" for k, n in d["by_kind"].items() if n) or "none"
+    return (f"- *cannot tell* beside the verdict: {d['cases']} ({kinds}); right answers "
+            f"among them {d['correct']}; wrong answers that say so {d['wrong_said']} of "
+            f"{d['wrong']}")
+
+
 def summary_markdown(s: dict) -> str:
     c, si, p, o = (s[k] for k in KINDS)
     lines = ["# Open-world diagnosis benchmark", "",
@@ -304,6 +320,7 @@ def summary_markdown(s: dict) -> str:
              f"{s['explained_rms_over_true_noise_max']:.2f}"
              + (f" (above 1.2: {', '.join(s['explained_above_1.2'])})"
                 if s["explained_above_1.2"] else ""),
+             _doubt_line(s.get("cannot_tell")),
              f"- diagnosis time per case (median, one rank): {s['elapsed_s_median']:.0f} s",
              "- left out (no solvable truth in 5 draws): "
              + (", ".join(s.get("left_out", [])) or "none"),
@@ -315,7 +332,8 @@ def summary_markdown(s: dict) -> str:
               "| case | kind | truth | verdict | status | noise | misfit | RMS before | "
               "RMS after | after / true noise |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in s["by_case"]:
-        lines.append(f"| {r['case']} | {r['kind']} | {r['expected']} | {r['verdict']} | "
+        verdict = r["verdict"] + (" (cannot tell)" if r.get("cannot_tell") else "")
+        lines.append(f"| {r['case']} | {r['kind']} | {r['expected']} | {verdict} | "
                      f"{r['status']} | {r['noise_kinds']} | {r['misfit']:.1f} | "
                      f"{r['rms_before']:.2f} | {r['rms_after']:.2f} | "
                      f"{r['rms_after_over_true_noise']:.2f} |")

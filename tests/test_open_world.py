@@ -62,6 +62,18 @@ def test_pairs_are_also_scored_where_their_tests_separate_both_effects():
     s = score({k: v[0] for k, v in cases.items()}, {k: v[1] for k, v in cases.items()})
     assert s["pair"] == {"cases": 4, "correct": 2, "within_ambiguity": 2, "within_limit": 0,
                          "separable": 2, "separable_correct": 1, "measured": 3}
+    # a verdict with a *cannot tell* beside it is counted apart: here one wrong (p3) says
+    # so, one right (p2) too, and the wrong p1 does not
+    cases["p3"][1]["cannot_tell"] = cases["p2"][1]["cannot_tell"] = "the noise ..."
+    s = score({k: v[0] for k, v in cases.items()}, {k: v[1] for k, v in cases.items()})
+    assert s["cannot_tell"] == {"cases": 2, "correct": 1, "by_kind": {
+        "control": 0, "single": 0, "pair": 2, "outside": 0}, "wrong": 2, "wrong_said": 1}
+    from diagnosis.open_benchmark import summary_markdown
+
+    s["left_out"] = []
+    md = summary_markdown(s)
+    assert ("*cannot tell* beside the verdict: 2 (pair 2); right answers among them 1; "
+            "wrong answers that say so 1 of 2") in md and "| a (cannot tell) |" in md
 
 
 def test_recorded_times_are_not_on_the_fe_steps():
