@@ -541,10 +541,14 @@ def contact_event_notes(obs, sim, final: Fit) -> list[str]:
 
 def _what_remains(obs, current: Fit, stated, alpha, bic_margin):
     """The noise model of ``current``'s residual and what that model leaves systematic."""
-    r = _residual(obs, current)
     nm = _noise_of(obs, current, stated)
-    return nm, remaining(obs, r, nm, alpha=alpha, bic_margin=bic_margin,
-                         prediction=current.prediction)
+    return nm, _remains_under(obs, current, nm, alpha, bic_margin)
+
+
+def _remains_under(obs, current: Fit, nm: NoiseModel, alpha, bic_margin) -> dict:
+    """What ``current`` leaves systematic under the noise model ``nm``."""
+    return remaining(obs, _residual(obs, current), nm, alpha=alpha, bic_margin=bic_margin,
+                     prediction=current.prediction)
 
 
 def _noise_of(obs, f: Fit, stated) -> NoiseModel:
@@ -617,8 +621,7 @@ def _rival_outcome(obs, base: Fit, current: Fit, in_model: list, nm: NoiseModel,
     rival = nm.rival()
     if rival is None:
         return {}
-    rem = remaining(obs, _residual(obs, current), rival, alpha=alpha, bic_margin=bic_margin,
-                    prediction=current.prediction)
+    rem = _remains_under(obs, current, rival, alpha, bic_margin)
     sd = rival.sd()
     status, named, _ = decide(in_model, rem["systematic"], _rms(obs, base, sd),
                               _rms(obs, current, sd))

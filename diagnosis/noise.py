@@ -240,22 +240,23 @@ class NoiseModel:
 
     def describe_rivals(self) -> dict:
         """Per series with a rival: the -2 log L between the two and both slow SDs."""
-        mine, theirs = self.describe(), self.rival().describe() if self.rivals else {}
+        mine = self.describe()
+        theirs = self.describe({**self.params, **{k: n for k, (n, _) in self.rivals.items()}})
         return {f"{c}/{ch}": {"delta_m2logl": d, "slow_sd": mine[f"{c}/{ch}"]["slow_sd"],
                               "rival_slow_sd": theirs[f"{c}/{ch}"]["slow_sd"]}
                 for (c, ch), (_, d) in self.rivals.items()}
 
-    def describe(self) -> dict:
-        """Per series: the parameters, and ``slow_sd``, the SD of its slow part (wander and
-        drift together) as an RMS over the series' times, comparable with a stated
-        instrument noise."""
+    def describe(self, params: dict | None = None) -> dict:
+        """Per series: the parameters (``params``, default the model's own), and
+        ``slow_sd``, the SD of its slow part (wander and drift together) as an RMS over the
+        series' times, comparable with a stated instrument noise."""
         span = {}
         for s in self.series:
             span[s.key] = max(span.get(s.key, 0.0), float(np.sqrt(np.mean(s.ramp**2))))
         return {f"{c}/{ch}": {"white": n.white, "correlated": n.corr,
                               "correlation_time_s": n.corr_s, "drift_per_s": n.drift,
-                              "slow_sd": math.hypot(n.corr, n.drift * span.get((c, ch), 0.0))}
-                for (c, ch), n in self.params.items()}
+                              "slow_sd": _slow(n, span.get((c, ch), 0.0))}
+                for (c, ch), n in (self.params if params is None else params).items()}
 
 
 @dataclass

@@ -254,10 +254,10 @@ def score(labels: dict, results: dict) -> dict:
                        measured=int(df[df["kind"] == "pair"]["separable"].notna().sum()))
     out["control"]["false_alarms"] = int((df[df["kind"] == "control"]["verdict"] != "none"
                                           ).sum())
-    doubt = df[df["cannot_tell"]] if len(df) else df
+    doubt = df[df["cannot_tell"]]
     out["cannot_tell"] = {"cases": len(doubt), "correct": int(doubt["correct"].sum()),
                           "by_kind": {k: int((doubt["kind"] == k).sum()) for k in KINDS},
-                          "wrong": int((~df["correct"]).sum()) if len(df) else 0,
+                          "wrong": int((~df["correct"]).sum()),
                           "wrong_said": int((~doubt["correct"]).sum())}
     o = df[df["kind"] == "outside"]
     out["outside"]["not_explained"] = int((o["status"] != "explained").sum())
