@@ -31,6 +31,16 @@ STATUS_TEXT = {
 }
 TRIED_TEXT = ("a systematic misfit the library does not explain: its closest model, {}, "
               "leaves more than half of the RMS misfit, so no effect is named")
+TRIED_TREND_TEXT = ("a systematic misfit the library does not explain: what its closest "
+                    "model, {}, leaves holds a stiffness change with time, which no effect "
+                    "of the library makes and which the effects fitted beside it may stand "
+                    "in for, so no effect is named")
+
+
+def _tried_text(d) -> str:
+    """Why the effects of the library's closest model are tried, not named."""
+    trend = d.remaining.get("trend", {}).get("significant", False)
+    return (TRIED_TREND_TEXT if trend else TRIED_TEXT).format("+".join(sorted(d.tried)))
 
 
 def _segments(rows, limit=12) -> list[str]:
@@ -53,8 +63,7 @@ def _write(d, out: Path, title: str) -> dict:
     named = " + ".join(EFFECTS[e].description if e in EFFECTS else e for e in d.effects)
     lines = [f"# {title}", "", f"**Verdict: {d.verdict}** ({d.status})"
              + (f" — {named}" if named else ""), "",
-             (TRIED_TEXT.format("+".join(sorted(d.tried))) if d.tried
-              else STATUS_TEXT[d.status]) + ".", ""]
+             (_tried_text(d) if d.tried else STATUS_TEXT[d.status]) + ".", ""]
     if d.cannot_tell:
         lines += [f"**Cannot tell**: {d.cannot_tell}.", ""]
     if d.last_digits.get("same"):
