@@ -275,20 +275,26 @@ def signatures_markdown(results: dict, groups: dict, regions: dict, facts: dict)
         lines += ["", f"## Rate dependence: {region} ({tests}, {cycles} cycle"
                   f"{'s' if cycles != 1 else ''})", "",
                   "| group | loading rate [1/s] | n | viscoelastic named | tau [s] | beta | "
-                  "not testable (model not solved) |", "|---|---|---|---|---|---|---|"]
+                  "tried, not named (unexplained) | not testable (model not solved) |",
+                  "|---|---|---|---|---|---|---|---|"]
         said = []
         for g in sorted(rate, key=rate.get, reverse=True):
             rs = [ok[n] for n in gs[g]]
             named = [r for r in rs if "viscoelastic" in r.get("effects", [])]
+            tried = sum("viscoelastic" in r.get("tried", []) for r in rs)
             taus = [10 ** r["refit_parameters"]["log10_tau_0"] for r in named]
             betas = [r["refit_parameters"]["beta_0"] for r in named]
             how = [_tested(r, "viscoelastic") for r in rs]
             blind, absent = how.count("untestable"), how.count("absent")
             lines.append(f"| {g} | {rate[g]:.3g} | {len(rs)} | {len(named)} | {_range(taus)} "
-                         f"| {_range(betas)} | {blind} |")
+                         f"| {_range(betas)} | {tried} | {blind} |")
             if 2 * len(named) > len(rs):
                 said.append(f"{g}: viscoelastic in {len(named)} of {len(rs)}, tau "
                             f"{_range(taus)} s")
+            elif 2 * (len(named) + tried) > len(rs):
+                said.append(f"{g}: viscoelastic named in {len(named)} of {len(rs)}, fitted "
+                            f"but not named in {tried} more (beside a misfit the library "
+                            "does not explain)")
             elif 2 * absent >= len(rs):
                 said.append(f"{g}: not tested (viscoelastic not a candidate in {absent} of "
                             f"{len(rs)})")

@@ -55,7 +55,7 @@ from . import locate as loc
 from .effects import BASE_NAMES, check_effects, library, parameter_names, separating_test
 from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
 from .noise import NoiseModel, estimate_noise, fit_noise
-from .remaining import remaining, systematic_basis
+from .remaining import remaining, systematic_basis, trend_change
 from .screen import (
     AT_DESIGN,
     IN_COMPLIANCE,
@@ -87,8 +87,9 @@ ENGINE_VERSION = "2026.11-open-world-13"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
-# least halve the RMS misfit (in units of the noise); otherwise the misfit is something else
-# and the verdict is ``unexplained``, with the library's closest model beside it
+# least halve the RMS misfit (in units of the noise) and what they leave holds no stiffness
+# trend with time (physics no library effect makes, which they may stand in for); otherwise
+# the verdict is ``unexplained``, with the library's closest model beside it
 EXPLAINS_FRACTION = 0.5
 # Without a repeated ramp, wander and a smooth misfit cannot be told apart: when the noise
 # model needs a wander this many times the stated instrument noise to call the residual
@@ -111,7 +112,8 @@ class Diagnosis:
     elapsed_s: float
     obs: pd.DataFrame
     notes: list = field(default_factory=list)
-    tried: list = field(default_factory=list)  # effects fitted that explain too little
+    # effects fitted that explain too little, or beside a stiffness trend (``decide``)
+    tried: list = field(default_factory=list)
     cannot_tell: str = ""  # why a `none`/`explained` may hide a misfit taken for wander
     timings: dict = field(default_factory=dict)  # wall time of each stage [s]
     # how large the candidates not named would have to be to show beside the final model
@@ -340,8 +342,9 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                      f"{100 * rms_final / rms_base:.0f} % of the base RMS misfit"
                      + ("; an effect is named only when it at least halves it"
                         if rms_final > EXPLAINS_FRACTION * rms_base else "")
-                     + ("; what it leaves holds a stiffness change with time (p = "
-                        f"{rem['trend']['p_value']:.2g}) that no effect of the library "
+                     + ("; what it leaves holds a stiffness change with time ("
+                        f"{trend_change(rem['trend'])}, p = {rem['trend']['p_value']:.2g}) "
+                        "that no effect of the library "
                         "makes, and the effects fitted beside it may stand in for part of "
                         "it, so none is named" if trend else ""))
     doubt = _cannot_tell(status, rem, final_noise, noise)

@@ -169,8 +169,8 @@ def before_after(d, path) -> None:
 
 def across_specimens(results: dict, groups: dict, path) -> None:
     """Every specimen of a batch: RMS against the noise before and after (log-log, one
-    marker per group; below the dashed line the named effects halve it) and the verdicts
-    per group."""
+    marker per group; below the dashed line the effects fitted halve it: named, unless
+    they leave a stiffness trend) and the verdicts per group."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -14,7 +14,9 @@ it (white noise, wander correlated over at most half a ramp, drift from the tare
   margin.  Data without repetitions (loading only, one pass) cannot be tested this way,
   and the report says so;
 * **trend**: the stiffness changing with time within the tests of several cycles (the
-  prediction scaled by time at one rate for every test), which no library effect does.
+  prediction scaled by time at one rate for every test), which no library effect does;
+  its size is reported as the relative change of the stiffness over the longest such
+  test (``change`` +- ``change_se`` over ``span_s`` seconds).
 
 The noise model is estimated by restricted ML with these columns and the model's own
 parameters projected out (:func:`systematic_basis`, :func:`diagnosis.noise.fit_noise`), so
@@ -91,16 +93,34 @@ def trend_basis(obs: pd.DataFrame, prediction: np.ndarray) -> np.ndarray:
     changes with time alone, so a trend the final model leaves is a misfit, whatever its
     cause.  One rate, not one per curve: a drift of the tissue is the tissue's, and a
     single column needs the least evidence to be seen (open-world-10)."""
+    col = np.zeros(len(obs))
+    for rows, tt in _trend_curves(obs):
+        col[rows] = prediction[rows] * (tt - 0.5 * (tt.min() + tt.max()))
+    span = trend_span(obs)
+    return (col / span)[:, None] if span > 0 else np.zeros((len(obs), 0))
+
+
+def _trend_curves(obs: pd.DataFrame):
+    """(rows, times) of every curve of several cycles with a usable clock."""
     t = obs["time_s"].to_numpy(float) if "time_s" in obs else np.full(len(obs), np.nan)
-    col, span = np.zeros(len(obs)), 0.0
     for _, g in obs.groupby("curve", sort=False):
         rows = g.index.to_numpy()
         tt = t[rows]
-        if g["cycle"].nunique() < 2 or not np.isfinite(tt).all() or np.ptp(tt) <= 0:
-            continue
-        col[rows] = prediction[rows] * (tt - 0.5 * (tt.min() + tt.max()))
-        span = max(span, float(np.ptp(tt)))
-    return (col / span)[:, None] if span > 0 else np.zeros((len(obs), 0))
+        if g["cycle"].nunique() >= 2 and np.isfinite(tt).all() and np.ptp(tt) > 0:
+            yield rows, tt
+
+
+def trend_span(obs: pd.DataFrame) -> float:
+    """The time unit of :func:`trend_basis` [s]: the longest curve of several cycles (0
+    when there is none): its coefficient is the relative change of the stiffness over
+    that time."""
+    return max((float(np.ptp(tt)) for _, tt in _trend_curves(obs)), default=0.0)
+
+
+def trend_change(trend: dict) -> str:
+    """The modelled trend of :func:`remaining` in words: '-12 +- 2 % over 65 s'."""
+    return (f"{100 * trend['change']:+.0f} +- {100 * trend['change_se']:.0f} % over "
+            f"{trend['span_s']:.0f} s")
 
 
 def systematic_basis(obs: pd.DataFrame, prediction: np.ndarray | None = None) -> np.ndarray:
@@ -144,7 +164,7 @@ def _lrt(Bw: np.ndarray, z: np.ndarray, n: int, alpha: float, bic_margin: float,
 
 def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 1e-3,
               bic_margin: float = 10.0, prediction: np.ndarray | None = None) -> dict:
-    """The tests on ``residual`` (recorded minus model) under ``noise``; with the model's
+    """The tests on ``residual`` (model minus recorded) under ``noise``; with the model's
     ``prediction``, also whether the stiffness trends with time (:func:`trend_basis`)."""
     obs = obs.reset_index(drop=True)
     z = noise.whiten(np.asarray(residual, float))
@@ -159,7 +179,15 @@ def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 
     if prediction is not None:
         T = trend_basis(obs, np.asarray(prediction, float))
         if T.shape[1]:
-            trend = _lrt(noise.whiten_jacobian(T), z, len(obs), alpha, bic_margin, nu)
+            Tw = noise.whiten_jacobian(T)
+            trend = _lrt(Tw, z, len(obs), alpha, bic_margin, nu)
+            # the trend modelled: the recorded stiffness is the model's times
+            # 1 + change (t - mid) / span (the residual is model minus recorded), with
+            # its standard error (the whitened residual has unit variance)
+            tt = float(Tw[:, 0] @ Tw[:, 0])
+            if tt > 0:
+                trend.update(change=-float(Tw[:, 0] @ z) / tt, change_se=1.0 / math.sqrt(tt),
+                             span_s=trend_span(obs))
     return {"located": located, "reproducible": rep, "trend": trend,
             "systematic": bool(located) or rep["significant"] or trend["significant"],
             "table": table}

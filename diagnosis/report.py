@@ -10,7 +10,9 @@ import numpy as np
 from brain_fe.io import staged_directory, write_json_atomic, write_text_atomic
 
 from .effects import EFFECTS
+from .engine import EXPLAINS_FRACTION
 from .figures import before_after, mismatch_map
+from .remaining import trend_change
 
 log = logging.getLogger(__name__)
 
@@ -29,18 +31,20 @@ STATUS_TEXT = {
     "misfit remains (below)",
     "unexplained": "a systematic misfit that no candidate of the library removes",
 }
-TRIED_TEXT = ("a systematic misfit the library does not explain: its closest model, {}, "
-              "leaves more than half of the RMS misfit, so no effect is named")
-TRIED_TREND_TEXT = ("a systematic misfit the library does not explain: what its closest "
-                    "model, {}, leaves holds a stiffness change with time, which no effect "
-                    "of the library makes and which the effects fitted beside it may stand "
-                    "in for, so no effect is named")
+TRIED_TEXT = "a systematic misfit the library does not explain: its closest model, {}, {}"
+TRIED_HALF = "leaves more than half of the RMS misfit"
+TRIED_TREND = ("leaves a stiffness change with time, which no effect of the library makes "
+               "and which the effects fitted beside it may stand in for")
 
 
-def _tried_text(d) -> str:
-    """Why the effects of the library's closest model are tried, not named."""
-    trend = d.remaining.get("trend", {}).get("significant", False)
-    return (TRIED_TREND_TEXT if trend else TRIED_TEXT).format("+".join(sorted(d.tried)))
+def _tried_text(d, res: dict) -> str:
+    """Why the effects of the library's closest model are tried, not named
+    (``res``: the diagnosis as in diagnosis.json)."""
+    why = [TRIED_HALF] if res["rms_after"] > EXPLAINS_FRACTION * res["rms_before"] else []
+    if d.remaining.get("trend", {}).get("significant", False):
+        why.append(TRIED_TREND)
+    return TRIED_TEXT.format("+".join(sorted(d.tried)), " and ".join(why)
+                             + ", so no effect is named")
 
 
 def _segments(rows, limit=12) -> list[str]:
@@ -63,7 +67,7 @@ def _write(d, out: Path, title: str) -> dict:
     named = " + ".join(EFFECTS[e].description if e in EFFECTS else e for e in d.effects)
     lines = [f"# {title}", "", f"**Verdict: {d.verdict}** ({d.status})"
              + (f" — {named}" if named else ""), "",
-             (_tried_text(d) if d.tried else STATUS_TEXT[d.status]) + ".", ""]
+             (_tried_text(d, res) if d.tried else STATUS_TEXT[d.status]) + ".", ""]
     if d.cannot_tell:
         lines += [f"**Cannot tell**: {d.cannot_tell}.", ""]
     if d.last_digits.get("same"):
@@ -87,7 +91,9 @@ def _write(d, out: Path, title: str) -> dict:
         lines += [f"Stiffness trending with time (one rate in every test of several cycles): "
                   f"chi2 gain {tr['gain']:.1f} "
                   f"on {tr['dof']} parameters, p = {tr['p_value']:.2g}, "
-                  f"{'significant' if tr['significant'] else 'not significant'}.", ""]
+                  f"{'significant' if tr['significant'] else 'not significant'}"
+                  + (f"; modelled, the stiffness changes by {trend_change(tr)}"
+                     if "change" in tr else "") + ".", ""]
     lines += _segments(rem["located"])
     if res["closest"]:
         lines += ["", "Closest candidates: " + ", ".join(

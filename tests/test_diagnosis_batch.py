@@ -225,6 +225,13 @@ def test_the_summary_says_what_the_diagnoses_make_of_rate_and_cycles():
     assert "m/slow: not tested (viscoelastic not a candidate in 1 of 1)" in \
         signatures_markdown(results, {"A": "m/fast", "B": "m/slow"}, {"A": "m", "B": "m"},
                             facts)
+    # fitted beside a misfit the library does not explain (a stiffness trend): tried
+    results["A"] = {"effects": [], "tried": ["viscoelastic", "mullins"],
+                    "refit_parameters": {}, "rounds": [{"table": []}]}
+    text = signatures_markdown(results, {"A": "m/fast", "B": "m/slow"},
+                               {"A": "m", "B": "m"}, facts)
+    assert "m/fast: viscoelastic named in 0 of 1, fitted but not named in 1 more" in text
+    assert "| m/fast | 0.1 | 1 | 0 | - | - | 1 | 0 |" in text
     same_rate = {n: dict(f, rate_per_s=0.1) for n, f in facts.items()}
     assert "Rate dependence" not in signatures_markdown(
         results, {"A": "m/fast", "B": "m/slow"}, {"A": "m", "B": "m"}, same_rate)

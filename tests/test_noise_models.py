@@ -195,19 +195,22 @@ def _two_curves(per_ramp: int, cycles: int) -> tuple[pd.DataFrame, np.ndarray]:
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_one_rate_stiffness_trend(seed):
-    """A stiffness lost at one rate during both tests (residual -d p (t - t_mid) / T, p the
+    """A stiffness changing at one rate during both tests (residual -d p (t - t_mid) / T, p the
     model's prediction) is one column of the trend test.  With d = 0.17 and white noise of
     SD 0.1 on 480 points its chi-square is d^2 / 0.1^2 * sum p^2 ((t - t_mid) / T)^2 ~
     2000 d^2 ~ 58 (<p^2> = 1/2, <((t - t_mid)/T)^2> = 1/12); the test's gain is that plus
     chi-square(1) noise, within 30 %, and significant (the BIC bar is log 480 + 10 = 16.2);
-    without the drift, on the same noise, it is not."""
+    without the drift, on the same noise, it is not.  The rate it reports is the planted
+    one."""
     from diagnosis.remaining import remaining, trend_basis
 
     rng = np.random.default_rng(seed)
     obs, p = _two_curves(40, 3)
     assert trend_basis(obs, p).shape == (len(obs), 1)  # one column for both curves
     t = obs["time_s"].to_numpy()
-    drift = -0.17 * p * (t - 119.5) / 239.0  # each curve's time runs 0..239 s
+    # the residual is model minus recorded: here the recordings stiffen, recorded =
+    # p (1 + 0.17 (t - t_mid) / T); each curve's time runs 0..239 s
+    drift = -0.17 * p * (t - 119.5) / 239.0
     expected = float(np.sum((drift / 0.1) ** 2))
     assert expected == pytest.approx(2000 * 0.17**2, rel=0.1)
     white = rng.normal(0.0, 0.1, len(obs))
@@ -216,6 +219,11 @@ def test_one_rate_stiffness_trend(seed):
     assert out["trend"]["dof"] == 1
     assert out["trend"]["gain"] == pytest.approx(expected, rel=0.3)
     assert out["trend"]["significant"]
+    # the trend modelled: the planted rate, +0.17 of the stiffness over a test of 239 s,
+    # recovered within three standard errors, each 1 / sqrt(2000) = 0.022
+    assert out["trend"]["span_s"] == pytest.approx(239.0)
+    assert out["trend"]["change_se"] == pytest.approx(2000**-0.5, rel=0.1)
+    assert abs(out["trend"]["change"] - 0.17) < 3 * out["trend"]["change_se"]
     clean = remaining(obs, white, nm, prediction=p)
     assert not clean["trend"]["significant"]
 

@@ -429,6 +429,13 @@ def test_the_report_says_why_tried_effects_are_not_named():
 
     d = types.SimpleNamespace(tried=["mullins", "artefacts"],
                               remaining={"trend": {"significant": True}})
-    assert "artefacts+mullins" in _tried_text(d) and "change with time" in _tried_text(d)
+    halved, not_halved = {"rms_before": 4.58, "rms_after": 1.88}, \
+        {"rms_before": 2.48, "rms_after": 1.37}
+    text = _tried_text(d, halved)
+    assert "artefacts+mullins" in text and "change with time" in text
+    assert "more than half" not in text
+    both = _tried_text(d, not_halved)
+    assert "more than half" in both and "change with time" in both
     d.remaining = {"trend": {"significant": False}}
-    assert "more than half" in _tried_text(d)
+    assert "more than half" in _tried_text(d, not_halved)
+    assert "change with time" not in _tried_text(d, not_halved)
