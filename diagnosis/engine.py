@@ -52,6 +52,7 @@ from brain_fe.parameters import Param
 from simulators.coordinates import NU0
 
 from . import locate as loc
+from .drift import drift_model
 from .effects import BASE_NAMES, check_effects, library, parameter_names, separating_test
 from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
 from .noise import NoiseModel, estimate_noise, fit_noise
@@ -128,6 +129,9 @@ class Diagnosis:
     # where the recordings leave the noise undetermined: per place (a round, the final
     # model), the two noise models and what each decides (diagnosis.noise.NOISE_TIE)
     noise_rivals: list = field(default_factory=list)
+    # the left-out physics modelled when the final model leaves a stiffness trend: the base
+    # model with its stiffness drifting at one rate, fitted jointly (:func:`drift_model`)
+    drift: dict = field(default_factory=dict)
 
     @property
     def verdict(self) -> str:
@@ -201,6 +205,7 @@ class Diagnosis:
             "noise": {k: v["noise"] for k, v in self.rms(self.base).items()},
             "noise_model": self.noise.describe(),
             "noise_rivals": self.noise_rivals,
+            "drift_model": self.drift,
             "rms_by_curve_before": self.rms(self.base),
             "rms_by_curve_after": self.rms(w),
             "base_parameters": _plain(self.base.values),
@@ -347,6 +352,17 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                         "that no effect of the library "
                         "makes, and the effects fitted beside it may stand in for part of "
                         "it, so none is named" if trend else ""))
+    drift = {}
+    if trend:  # the physics the library left out, modelled: does it take the misfit?
+        with _sharing(sim, comm):
+            drift = drift_model(sim, obs, base, final_noise.sd())
+        if drift:
+            notes.append(f"modelled: the base model with its stiffness drifting during the "
+                         f"session ({trend_change(drift)}, a level per test) takes the RMS "
+                         f"misfit from {rms_base:.2f} to {drift['rms_after']:.2f} with "
+                         f"{drift['extra_parameters']} parameter(s) more (the library's best "
+                         f"model: {rms_final:.2f}); a candidate for what the library "
+                         "lacks, not a verdict: other physics may leave a trend too")
     doubt = _cannot_tell(status, rem, final_noise, noise)
     undetermined, rivals = noise_doubt(rounds, status, chosen, _rival_outcome(
         obs, base, current, in_model, final_noise, alpha, bic_margin))
@@ -380,7 +396,8 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     timings["noise_locate_decide"] = round(time.perf_counter() - t_end, 2)
     return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
                      ambiguous, disc, time.perf_counter() - t0, obs, notes, tried, doubt,
-                     timings, limits, masked, list(errors), noise_rivals=rivals)
+                     timings, limits, masked, list(errors), noise_rivals=rivals,
+                     drift=drift)
 
 
 def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np.ndarray,
