@@ -356,13 +356,17 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     if trend:  # the physics the library left out, modelled: does it take the misfit?
         with _sharing(sim, comm):
             drift = drift_model(sim, obs, base, final_noise.sd())
-        if drift:
+        if drift and drift["rms_after"] < rms_final:
             notes.append(f"modelled: the base model with its stiffness drifting during the "
                          f"session ({trend_change(drift)}, a level per test) takes the RMS "
                          f"misfit from {rms_base:.2f} to {drift['rms_after']:.2f} with "
                          f"{drift['extra_parameters']} parameter(s) more (the library's best "
                          f"model: {rms_final:.2f}); a candidate for what the library "
                          "lacks, not a verdict: other physics may leave a trend too")
+        elif drift:
+            notes.append("a stiffness drifting during the session does not explain the trend "
+                         f"either: fitted, it leaves RMS {drift['rms_after']:.2f} (the "
+                         f"library's best model: {rms_final:.2f})")
     doubt = _cannot_tell(status, rem, final_noise, noise)
     undetermined, rivals = noise_doubt(rounds, status, chosen, _rival_outcome(
         obs, base, current, in_model, final_noise, alpha, bic_margin))

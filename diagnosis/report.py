@@ -95,7 +95,11 @@ def _write(d, out: Path, title: str) -> dict:
                   + (f"; modelled, the stiffness changes by {trend_change(tr)}"
                      if "change" in tr else "") + ".", ""]
     dm = res.get("drift_model")
-    if dm:
+    if dm and dm["rms_after"] >= res["rms_after"]:
+        lines += [f"A stiffness drifting during the session does not explain the trend: "
+                  f"fitted, it leaves RMS {dm['rms_after']:.2f} (the library's best model: "
+                  f"{res['rms_after']:.2f}).", ""]
+    elif dm:
         lines += [f"**A candidate for the left-out physics, modelled**: the base model with "
                   f"its stiffness drifting during the session (one rate within the tests, a "
                   f"level per test; {dm['extra_parameters']} parameter(s) more, fitted "
