@@ -42,7 +42,7 @@ class _Drifting:
     the drift; an approximation beside anything else."""
 
     def __init__(self, sim, obs: pd.DataFrame):
-        self.sim, self.kind = sim, getattr(sim, "kind", None)
+        self.sim = sim
         self.tau = trend_basis(obs, np.ones(len(obs)))[:, 0]
         curves = list(dict.fromkeys(obs["curve"]))
         self.test = obs["curve"].map({c: i for i, c in enumerate(curves)}).to_numpy()
@@ -93,8 +93,6 @@ def drift_model(sim, obs: pd.DataFrame, base: Fit, sd: np.ndarray,
         log.warning("the drift model could not be fitted: %s", exc)
         return {}
     return {"change": float(f.values[DRIFT]), "change_se": float(f.stderr.get(DRIFT, math.nan)),
-            "span_s": span,
-            "rms_after": float(np.sqrt(np.mean(((f.prediction - obs["value"].to_numpy(float))
-                                                / sd) ** 2))),
+            "span_s": span, "rms_after": math.sqrt(f.chi2 / f.n),  # f.z: residual / sd
             "extra_parameters": 1 + len(model.levels),
             "parameters": {str(k): float(v) for k, v in f.values.items()}}

@@ -129,8 +129,9 @@ class Diagnosis:
     # where the recordings leave the noise undetermined: per place (a round, the final
     # model), the two noise models and what each decides (diagnosis.noise.NOISE_TIE)
     noise_rivals: list = field(default_factory=list)
-    # the left-out physics modelled when the final model leaves a stiffness trend: the base
-    # model with its stiffness drifting at one rate, fitted jointly (:func:`drift_model`)
+    # a candidate for the left-out physics when the final model leaves a stiffness trend: the
+    # base model with its stiffness drifting (a rate within tests, a level per test), fitted
+    # jointly (:func:`diagnosis.drift.drift_model`)
     drift: dict = field(default_factory=dict)
 
     @property
@@ -341,7 +342,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     in_model = list(chosen)  # the effects of ``current``, named or not
     (status, chosen, tried), (rms_base, rms_final) = _status_under(
         obs, base, current, in_model, final_noise, rem)
-    trend = rem["trend"]["significant"]
+    trend, sd = rem["trend"]["significant"], final_noise.sd()
     if tried:
         notes.append(f"the library's closest model ({'+'.join(sorted(tried))}) leaves "
                      f"{100 * rms_final / rms_base:.0f} % of the base RMS misfit"
@@ -355,7 +356,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     drift = {}
     if trend:  # the physics the library left out, modelled: does it take the misfit?
         with _sharing(sim, comm):
-            drift = drift_model(sim, obs, base, final_noise.sd())
+            drift = drift_model(sim, obs, base, sd)
         if drift and drift["rms_after"] < rms_final:
             notes.append(f"modelled: the base model with its stiffness drifting during the "
                          f"session ({trend_change(drift)}, a level per test) takes the RMS "
@@ -394,7 +395,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                      "out, so the verdict may miss what it would have shown")
     notes += edge_notes(base, current)
     lift_off = resolve(getattr(sim, "ends", "glued"))[1]
-    notes += contact_notes(obs, base, current, final_noise.sd(), lift_off=lift_off)
+    notes += contact_notes(obs, base, current, sd, lift_off=lift_off)
     if lift_off and "in_contact" in obs and not obs["in_contact"].all():
         notes += contact_event_notes(obs, sim, current)
     timings["noise_locate_decide"] = round(time.perf_counter() - t_end, 2)

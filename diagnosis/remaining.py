@@ -93,10 +93,10 @@ def trend_basis(obs: pd.DataFrame, prediction: np.ndarray) -> np.ndarray:
     changes with time alone, so a trend the final model leaves is a misfit, whatever its
     cause.  One rate, not one per curve: a drift of the tissue is the tissue's, and a
     single column needs the least evidence to be seen (open-world-10)."""
-    col = np.zeros(len(obs))
-    for rows, tt in _trend_curves(obs):
+    col, curves = np.zeros(len(obs)), list(_trend_curves(obs))
+    for rows, tt in curves:
         col[rows] = prediction[rows] * (tt - 0.5 * (tt.min() + tt.max()))
-    span = trend_span(obs)
+    span = max((float(np.ptp(tt)) for _, tt in curves), default=0.0)  # trend_span
     return (col / span)[:, None] if span > 0 else np.zeros((len(obs), 0))
 
 

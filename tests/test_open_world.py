@@ -441,7 +441,7 @@ def test_the_report_says_why_tried_effects_are_not_named():
     assert "change with time" not in _tried_text(d, not_halved)
 
 
-def test_a_drifting_stiffness_is_modelled_with_one_parameter():
+def test_a_drifting_stiffness_is_modelled_with_a_rate_and_a_level_per_test():
     """The left-out physics modelled (``drift_model``): a specimen whose stiffness falls
     by 12 % over a test of three compression cycles and which is 10 % softer in the
     tension test that follows (the one-term Ogden stress is proportional to mu at fixed
