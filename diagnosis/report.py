@@ -94,19 +94,6 @@ def _write(d, out: Path, title: str) -> dict:
                   f"{'significant' if tr['significant'] else 'not significant'}"
                   + (f"; modelled, the stiffness changes by {trend_change(tr)}"
                      if "change" in tr else "") + ".", ""]
-    dm = res.get("drift_model")
-    if dm and dm["rms_after"] >= res["rms_after"]:
-        lines += [f"A stiffness drifting during the session does not explain the trend: "
-                  f"fitted, it leaves RMS {dm['rms_after']:.2f} (the library's best model: "
-                  f"{res['rms_after']:.2f}).", ""]
-    elif dm:
-        lines += [f"**A candidate for the left-out physics, modelled**: the base model with "
-                  f"its stiffness drifting during the session (one rate within the tests, a "
-                  f"level per test; {dm['extra_parameters']} parameter(s) more, fitted "
-                  f"jointly): {trend_change(dm)}, RMS misfit {res['rms_before']:.2f} (base) "
-                  f"-> {dm['rms_after']:.2f} (the library's best model: "
-                  f"{res['rms_after']:.2f}). Other physics may leave a trend too: this is "
-                  "not a verdict.", ""]
     lines += _segments(rem["located"])
     if res["closest"]:
         lines += ["", "Closest candidates: " + ", ".join(
