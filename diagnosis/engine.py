@@ -325,7 +325,10 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                 new = _completed(ctx, rnd.fits[added], [*chosen, added])
                 rnd.added = added
                 chosen = [*chosen, added]
-                current, chosen, dropped = _retest(ctx, new, chosen, rnd.noise)
+                doubts: list = []  # re-test decisions the rival noise would reverse
+                current, chosen, dropped = _retest(ctx, new, chosen, rnd.noise, doubts)
+                if doubts:
+                    rnd.noise_rival["retest"] = doubts
             rnd.dropped = dropped
             if added not in dropped:
                 ambiguous += ties
@@ -689,6 +692,10 @@ def noise_doubt(rounds: list, status: str, named: list, final: dict) -> tuple[st
         if r["adds"] != r["rival_adds"]:
             changes.append(f"round {i} would add {r['rival_adds'] or 'nothing'} instead of "
                            f"{r['adds'] or 'nothing'} ({series(r['series'])})")
+        changes += [f"round {i}'s re-test would {'keep' if d['dropped'] else 'drop'} "
+                    f"{d['effect']} (LRT {d['rival_lrt']:.1f} against {d['lrt']:.1f}, "
+                    f"{d['needed']:.1f} needed; {series(r['series'])})"
+                    for d in r.get("retest", ())]
     if final:
         places.append({"where": "final", "series": final["series"], "status": status,
                        "effects": sorted(named), "rival_status": final["status"],
@@ -726,10 +733,12 @@ def _union(ctx, effects):
     return Union(ctx.lib, effects)
 
 
-def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list, list]:
+def _retest(ctx: Context, current: Fit, chosen: list, noise,
+            doubts: list | None = None) -> tuple[Fit, list, list]:
     """Re-test every effect chosen in the presence of the others: refit without it from the
     joint fit's values, drop it when it no longer earns its place.  Returns (fit, effects,
-    dropped).
+    dropped).  Where ``noise`` has a rival (:meth:`NoiseModel.rival`) each decision is
+    made under it too, and one it reverses is appended to ``doubts``.
 
     The one just added too, once the model holds two or more: its likelihood ratio was
     measured against the previous model's fit, which may sit in a worse optimum than the
@@ -738,6 +747,7 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list,
     fitted to 0.4902 +- 0.005, its neutral 0.49).  The first effect needs no such re-test:
     the base fit it is measured against has no previous round's start to inherit."""
     dropped = []
+    rival = noise.rival() if noise is not None else None
     for e in list(chosen if len(chosen) > 1 else ()):
         rest = [c for c in chosen if c != e]
         start = {k: v for k, v in current.values.items() if k not in ctx.lib[e].names}
@@ -755,7 +765,13 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list,
             continue
         k = len(ctx.lib[e].names)
         lrt = ctx.chi2(noise, without) - ctx.chi2(noise, current)
-        if lrt < ctx.needed(k, max(len(chosen), 1)):
+        needed = ctx.needed(k, max(len(chosen), 1))
+        if rival is not None and doubts is not None:
+            lrt_rival = ctx.chi2(rival, without) - ctx.chi2(rival, current)
+            if (lrt_rival < needed) != (lrt < needed):
+                doubts.append({"effect": e, "dropped": bool(lrt < needed), "lrt": lrt,
+                               "rival_lrt": lrt_rival, "needed": needed})
+        if lrt < needed:
             log.info("%s no longer earns its place next to %s (LRT %.1f)", e, rest, lrt)
             current, chosen = without, rest
             dropped.append(e)

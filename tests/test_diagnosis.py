@@ -292,3 +292,9 @@ def test_a_decision_that_follows_an_undetermined_noise_is_cannot_tell():
     text, places = noise_doubt([same], "explained", ["viscoelastic"], final)
     assert "the final model would be -, unexplained instead of viscoelastic, explained" in text
     assert places[-1]["rival_status"] == "unexplained"
+    retest = SimpleNamespace(noise_rival={**same.noise_rival, "retest": [
+        {"effect": "compressibility", "dropped": True, "lrt": 0.4, "rival_lrt": 50.4,
+         "needed": 15.2}]})
+    text, places = noise_doubt([retest], "explained", ["viscoelastic"], {})
+    assert "round 1's re-test would keep compressibility (LRT 50.4 against 0.4" in text
+    assert places[0]["retest"][0]["effect"] == "compressibility"

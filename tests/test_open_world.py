@@ -383,6 +383,18 @@ def test_the_effect_just_added_is_re_tested_from_the_joint_fit(monkeypatch):
     one = eng._retest(ctx, joint, ["imperfect_gluing"], None)
     assert one == (joint, ["imperfect_gluing"], []) and calls == []
 
+    # under a rival noise model the recordings do not rule out, the slow part of the
+    # noise weighs the refit's misfit otherwise: nu0 would stay (LRT 50.4 > about 15), so
+    # that decision is reported as one the noise decides (engine.noise_doubt)
+    rival = object()
+    noise = SimpleNamespace(rival=lambda: rival)
+    ctx.chi2 = lambda nm, f: f.chi2 + (50.0 if nm is rival and f is not joint else 0.0)
+    doubts = []
+    current, kept, dropped = eng._retest(ctx, joint, chosen, noise, doubts)
+    assert dropped == ["compressibility"]  # the decision is the chosen noise's
+    assert [(d["effect"], d["dropped"]) for d in doubts] == [("compressibility", True)]
+    assert doubts[0]["rival_lrt"] == pytest.approx(50.4)
+
 
 def test_a_failed_completion_of_the_winner_leaves_its_ranking_fit(monkeypatch, caplog):
     """The fit of the effect just added is run to the end after the ranking; where that
