@@ -26,7 +26,7 @@ from brain_fe.io import write_json_atomic, write_text_atomic
 from brain_fe.logs import rank_local
 from brain_fe.materials import MaterialModel
 from brain_fe.model import ForwardModel
-from brain_fe.parallel import as_progress, gather_all
+from brain_fe.parallel import SharedCounter, as_progress, dynamic_items, gather_all
 from brain_fe.parameters import Param
 from brain_fe.protocols import compression_tension, torsion
 from brain_fe.solver import ConvergenceError
@@ -157,8 +157,8 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
                   truth_refinement: int = 3, correction_refinement: int = 2,
                   controls: float = 0.25, effects=None, cycles: int = 2,
                   increment: float = 0.03, comm=MPI.COMM_WORLD, progress=None) -> dict:
-    """Generate, diagnose blind and score ``n_cases`` cases; cases are shared among the
-    MPI ranks (each works on MPI.COMM_SELF). Writes DIR/cases/ (recordings, specimens and
+    """Generate, diagnose blind and score ``n_cases`` cases; each case goes to whichever
+    MPI rank is free (each works on MPI.COMM_SELF). Writes DIR/cases/ (recordings, specimens and
     each blind result), labels.json, results.json, summary.json and summary.md. Resumable:
     a case whose recordings come out identical to those already in DIR is not diagnosed
     again when the diagnosis settings (DIR/config.json) are unchanged."""
@@ -187,8 +187,11 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
         (out / "cases").mkdir(parents=True, exist_ok=True)
         write_json_atomic(out / "config.json", config, indent=1)
     comm.Barrier()
+    counter = SharedCounter(comm)
     with rank_local():  # this rank's own cases: its warnings are said
-        for i in range(comm.rank, n_cases, comm.size):
+        # each case to whichever rank is free (a case depends only on its seed and
+        # index, not on the rank or the cases before it)
+        for i in dynamic_items(range(n_cases), counter):
             case_rng = np.random.default_rng(seeds[i])
             for attempt in range(3):  # a truth the FE model cannot follow is drawn again
                 try:
@@ -228,7 +231,8 @@ def run_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int =
                      res["elapsed_s"])
             bar.update(1, f"{case.name} {case.effect} -> {res['verdict']}")
     bar.close()
-    allres = gather_all(comm, mine)
+    counter.free()
+    allres = sorted(gather_all(comm, mine), key=lambda x: x[0].name)  # in case order
     summary = score([c for c, _, _ in allres], [r for _, r, _ in allres], classes,
                     [t for _, _, t in allres])
     if comm.rank == 0:

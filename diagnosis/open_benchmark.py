@@ -24,7 +24,7 @@ from mpi4py import MPI
 
 from brain_fe.io import write_json_atomic, write_text_atomic
 from brain_fe.logs import rank_local
-from brain_fe.parallel import as_progress, gather_all
+from brain_fe.parallel import SharedCounter, as_progress, dynamic_items, gather_all
 from brain_fe.solver import ConvergenceError
 from brain_fe.vocabulary import TIME
 from recordings.noise import RigNoise
@@ -114,8 +114,8 @@ def _rms_over_rig_noise(obs: pd.DataFrame, res: dict, noise: dict,
 
 def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int = 1,
                        comm=MPI.COMM_WORLD, progress=None) -> dict:
-    """Generate, diagnose blind and score ``n_cases`` open-world cases, shared among the
-    MPI ranks.  Writes DIR/cases/, labels.json, results.json, summary.json, summary.md."""
+    """Generate, diagnose blind and score ``n_cases`` open-world cases, each on
+    whichever MPI rank is free.  Writes DIR/cases/, labels.json, results.json, summary.json, summary.md."""
     out = Path(out)
     config = {"world": "open", "seed": seed, "refinement": refinement,
               "engine": ENGINE_VERSION}
@@ -130,8 +130,11 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
     models: dict = {}
     mine = []
     skipped = []
+    counter = SharedCounter(comm)
     with rank_local():  # this rank's own cases: its warnings are said
-        for i in range(comm.rank, n_cases, comm.size):
+        # each case to whichever rank is free (a case depends only on its seed and
+        # index, not on the rank or the cases before it)
+        for i in dynamic_items(range(n_cases), counter):
             made = _case(i, seed, models)
             if made is None:
                 skipped.append(f"world{i:03d}")
@@ -163,6 +166,7 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
                      res["verdict"], res["status"])
             bar.update(1, f"{case.name} {label['expected']} -> {res['verdict']}")
     bar.close()
+    counter.free()
     allres = sorted(gather_all(comm, mine), key=lambda x: x[0])
     labels = {n: lab for n, lab, _ in allres}
     results = {n: r for n, _, r in allres}

@@ -12,8 +12,8 @@ def add(sub) -> None:
         description="Generate N synthetic specimens (full protocol, 2 cycles, 1 %% noise, a "
         "finer mesh than the diagnosis), each with one concealed effect or none (controls, "
         ">= 20 %%), store the labels apart, diagnose blind and score: confusion matrix, "
-        "accuracy, false alarms, RMS after modelling, parameter recovery. Cases are shared "
-        "among MPI ranks (mpirun -n K).")
+        "accuracy, false alarms, RMS after modelling, parameter recovery. Each case goes "
+        "to whichever MPI rank is free (mpirun -n K).")
     p.add_argument("--cases", type=a.count(1), default=None, help="number of cases (required "
                    "unless --rescore)")
     p.add_argument("--rescore", action="store_true",
