@@ -114,8 +114,9 @@ def _rms_over_rig_noise(obs: pd.DataFrame, res: dict, noise: dict,
 
 def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: int = 1,
                        comm=MPI.COMM_WORLD, progress=None) -> dict:
-    """Generate, diagnose blind and score ``n_cases`` open-world cases, each on
-    whichever MPI rank is free.  Writes DIR/cases/, labels.json, results.json, summary.json, summary.md."""
+    """Generate, diagnose blind and score ``n_cases`` open-world cases, each on whichever
+    MPI rank is free.  Writes DIR/cases/, labels.json, results.json, summary.json,
+    summary.md."""
     out = Path(out)
     config = {"world": "open", "seed": seed, "refinement": refinement,
               "engine": ENGINE_VERSION}
