@@ -96,7 +96,7 @@ def trend_basis(obs: pd.DataFrame, prediction: np.ndarray) -> np.ndarray:
     col, curves = np.zeros(len(obs)), list(_trend_curves(obs))
     for rows, tt in curves:
         col[rows] = prediction[rows] * (tt - 0.5 * (tt.min() + tt.max()))
-    span = max((float(np.ptp(tt)) for _, tt in curves), default=0.0)  # trend_span
+    span = _span(curves)
     return (col / span)[:, None] if span > 0 else np.zeros((len(obs), 0))
 
 
@@ -114,7 +114,12 @@ def trend_span(obs: pd.DataFrame) -> float:
     """The time unit of :func:`trend_basis` [s]: the longest curve of several cycles (0
     when there is none): its coefficient is the relative change of the stiffness over
     that time."""
-    return max((float(np.ptp(tt)) for _, tt in _trend_curves(obs)), default=0.0)
+    return _span(_trend_curves(obs))
+
+
+def _span(curves) -> float:
+    """The longest time span of ``curves`` ((rows, times) of :func:`_trend_curves`) [s]."""
+    return max((float(np.ptp(tt)) for _, tt in curves), default=0.0)
 
 
 def trend_change(trend: dict) -> str:
