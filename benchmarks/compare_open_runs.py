@@ -4,14 +4,18 @@
 
 The cases of ``brainmech benchmark-diagnosis --world open`` depend only on (seed, index),
 so two runs with the same seed hold the same recordings and differ only by the engine
-that diagnosed them.  Prints, per kind of case, how many each run got right, and every
-case whose verdict or correctness changed.
+that diagnosed them (or, with the same engine, by the machine: rounding).  Prints, per
+kind of case, how many each run got right, every case whose verdict, status, *cannot
+tell* or correctness changed, and how closely the numbers agree (relative differences of
+the RMS before and after modelling and of the generator's calibration misfit: median,
+largest and where).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 from pathlib import Path
 
 
@@ -35,7 +39,7 @@ def main() -> None:
         k[0] += 1
         k[1] += bool(o["correct"])
         k[2] += bool(n["correct"])
-        if o["correct"] != n["correct"] or o["verdict"] != n["verdict"]:
+        if any(o.get(k) != n.get(k) for k in ("correct", "verdict", "status", "cannot_tell")):
             changed.append(f"| {c} | {n['kind']} | {n['expected']} | {o['verdict']} "
                            f"({o['status']}) | {n['verdict']} ({n['status']}) |")
     print(f"{len(both)} cases in both runs\n")
@@ -43,6 +47,30 @@ def main() -> None:
     for kind, (n, r_old, r_new) in kinds.items():
         print(f"| {kind} | {n} | {r_old} | {r_new} |")
     print("\n" + "\n".join(changed))
+    print("\n" + "\n".join(agreement(old, new, both)))
+
+
+NUMBERS = ("rms_before", "rms_after", "misfit")
+
+
+def agreement(old: dict, new: dict, cases: list) -> list[str]:
+    """Markdown rows: per number of :data:`NUMBERS`, the relative differences between the
+    runs over ``cases`` (0 where both are equal, including both zero)."""
+    rows = ["| number | cases | equal | median rel. difference | largest (case) |",
+            "|---|---|---|---|---|"]
+    for key in NUMBERS:
+        diffs = []
+        for c in cases:
+            a, b = old[c].get(key), new[c].get(key)
+            if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+                diffs.append((0.0 if a == b else abs(b - a) / max(abs(a), abs(b)), c))
+        if not diffs:
+            continue
+        diffs.sort()
+        rows.append(f"| {key} | {len(diffs)} | {sum(d == 0.0 for d, _ in diffs)} | "
+                    f"{statistics.median(d for d, _ in diffs):.1e} | "
+                    f"{diffs[-1][0]:.1e} ({diffs[-1][1]}) |")
+    return rows
 
 
 if __name__ == "__main__":
