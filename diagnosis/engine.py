@@ -325,9 +325,8 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                 new = _completed(ctx, rnd.fits[added], [*chosen, added])
                 rnd.added = added
                 chosen = [*chosen, added]
-                doubts: list = []  # re-test decisions the rival noise would reverse
-                current, chosen, dropped = _retest(ctx, new, chosen, rnd.noise, doubts)
-                if doubts:
+                current, chosen, dropped, doubts = _retest(ctx, new, chosen, rnd.noise)
+                if doubts:  # re-test decisions the rival noise would reverse
                     rnd.noise_rival["retest"] = doubts
             rnd.dropped = dropped
             if added not in dropped:
@@ -733,12 +732,12 @@ def _union(ctx, effects):
     return Union(ctx.lib, effects)
 
 
-def _retest(ctx: Context, current: Fit, chosen: list, noise,
-            doubts: list | None = None) -> tuple[Fit, list, list]:
+def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list, list, list]:
     """Re-test every effect chosen in the presence of the others: refit without it from the
     joint fit's values, drop it when it no longer earns its place.  Returns (fit, effects,
-    dropped).  Where ``noise`` has a rival (:meth:`NoiseModel.rival`) each decision is
-    made under it too, and one it reverses is appended to ``doubts``.
+    dropped, doubts).  Where ``noise`` has a rival (:meth:`NoiseModel.rival`) each decision
+    is made under it too; ``doubts`` lists those it reverses (effect, whether dropped, the
+    LRT under each noise model and the LRT needed).
 
     The one just added too, once the model holds two or more: its likelihood ratio was
     measured against the previous model's fit, which may sit in a worse optimum than the
@@ -746,7 +745,7 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise,
     is only the better optimum's (open-benchmark world040: nu0 added with LRT 126 and
     fitted to 0.4902 +- 0.005, its neutral 0.49).  The first effect needs no such re-test:
     the base fit it is measured against has no previous round's start to inherit."""
-    dropped = []
+    dropped, doubts = [], []
     rival = noise.rival() if noise is not None else None
     for e in list(chosen if len(chosen) > 1 else ()):
         rest = [c for c in chosen if c != e]
@@ -766,7 +765,7 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise,
         k = len(ctx.lib[e].names)
         lrt = ctx.chi2(noise, without) - ctx.chi2(noise, current)
         needed = ctx.needed(k, max(len(chosen), 1))
-        if rival is not None and doubts is not None:
+        if rival is not None:
             lrt_rival = ctx.chi2(rival, without) - ctx.chi2(rival, current)
             if (lrt_rival < needed) != (lrt < needed):
                 doubts.append({"effect": e, "dropped": bool(lrt < needed), "lrt": lrt,
@@ -775,7 +774,7 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise,
             log.info("%s no longer earns its place next to %s (LRT %.1f)", e, rest, lrt)
             current, chosen = without, rest
             dropped.append(e)
-    return current, chosen, dropped
+    return current, chosen, dropped, doubts
 
 
 def _base(sim, fine_sim, obs, stated):

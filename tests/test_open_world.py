@@ -373,7 +373,8 @@ def test_the_effect_just_added_is_re_tested_from_the_joint_fit(monkeypatch):
     joint = SimpleNamespace(chi2=100.0, values={Param.parse(k): v for k, v in {
         "mu_0": 1.9, "log10_k": -0.35, "stretch_offset": -0.002, "nu0": 0.4902}.items()})
     chosen = ["imperfect_gluing", "artefacts", "compressibility"]
-    current, kept, dropped = eng._retest(ctx, joint, chosen, None)
+    current, kept, dropped, doubts = eng._retest(ctx, joint, chosen, None)
+    assert doubts == []  # no rival noise model: nothing to doubt
     assert dropped == ["compressibility"] and kept == ["imperfect_gluing", "artefacts"]
     assert current.chi2 == 100.4  # the refit without it stands
     gone, start = calls[-1]
@@ -381,7 +382,7 @@ def test_the_effect_just_added_is_re_tested_from_the_joint_fit(monkeypatch):
     assert start[Param.parse("log10_k")] == -0.35
     calls.clear()
     one = eng._retest(ctx, joint, ["imperfect_gluing"], None)
-    assert one == (joint, ["imperfect_gluing"], []) and calls == []
+    assert one == (joint, ["imperfect_gluing"], [], []) and calls == []
 
     # under a rival noise model the recordings do not rule out, the slow part of the
     # noise weighs the refit's misfit otherwise: nu0 would stay (LRT 50.4 > about 15), so
@@ -389,8 +390,7 @@ def test_the_effect_just_added_is_re_tested_from_the_joint_fit(monkeypatch):
     rival = object()
     noise = SimpleNamespace(rival=lambda: rival)
     ctx.chi2 = lambda nm, f: f.chi2 + (50.0 if nm is rival and f is not joint else 0.0)
-    doubts = []
-    current, kept, dropped = eng._retest(ctx, joint, chosen, noise, doubts)
+    current, kept, dropped, doubts = eng._retest(ctx, joint, chosen, noise)
     assert dropped == ["compressibility"]  # the decision is the chosen noise's
     assert [(d["effect"], d["dropped"]) for d in doubts] == [("compressibility", True)]
     assert doubts[0]["rival_lrt"] == pytest.approx(50.4)
