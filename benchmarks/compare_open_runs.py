@@ -39,7 +39,7 @@ def main() -> None:
         k[0] += 1
         k[1] += bool(o["correct"])
         k[2] += bool(n["correct"])
-        if any(o.get(k) != n.get(k) for k in ("correct", "verdict", "status", "cannot_tell")):
+        if any(o.get(f) != n.get(f) for f in ("correct", "verdict", "status", "cannot_tell")):
             changed.append(f"| {c} | {n['kind']} | {n['expected']} | {o['verdict']} "
                            f"({o['status']}) | {n['verdict']} ({n['status']}) |")
     print(f"{len(both)} cases in both runs\n")
