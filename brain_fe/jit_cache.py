@@ -12,12 +12,16 @@ things went wrong with that here:
 * a process stopped during a compilation leaves its C file without the mark, and every
   later process waited for a compilation that never ends and failed the same way.
 
-So every compilation (:func:`compiling`: of a form, an expression, or the element and
-dofmap of a function space, which DOLFINx compiles when the space is made) holds an
+So every compilation (inside :func:`compiling`: of a form, an expression, or the element
+and dofmap of a function space, which DOLFINx 0.5 compiles when the space is made) holds an
 exclusive lock on a file of the cache
 (``flock``: released when the process ends, however it ends): while it is held no other
 process of this project is compiling, so a C file without its mark was left by a stopped
-process; it is moved aside (FFCx's own ``.c.failed``) and the form compiled afresh. On a
+process; it is moved aside (FFCx's own ``.c.failed``) and the form compiled afresh. The
+lock is taken only when FFCx is about to look for a module the cache has not finished
+(FFCx's ``get_cached_module``, wrapped here): a form the cache holds is loaded without it,
+so that on a cold cache one rank does not wait for the other's compilation of another form
+each time it makes a form it has (measured: one core idle while the other compiled). On a
 distributed mesh DOLFINx compiles on rank 0 and the other ranks load the result after a
 broadcast: there rank 0 alone takes the lock (another rank holding it while it waits for
 rank 0's broadcast would block rank 0 for ever). A program outside this project that
@@ -28,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import logging
 from pathlib import Path
 
@@ -70,23 +75,71 @@ def unfinished(cache: Path) -> list[Path]:
     return [c for c in sorted(cache.glob("*.c")) if not c.with_suffix(".c.cached").exists()]
 
 
+class _Lock:
+    """The cache's lock, taken when first needed (:meth:`take`) and held until :meth:`drop`."""
+
+    def __init__(self, cache: Path):
+        self.cache = cache
+        self.fh = None
+
+    def take(self) -> None:
+        if self.fh is not None:
+            return
+        self.cache.mkdir(parents=True, exist_ok=True)
+        fh = open(self.cache / LOCK_NAME, "a")
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        self.fh = fh
+        for c in unfinished(self.cache):
+            log.warning("JIT cache: %s was left unfinished by a stopped process; moved "
+                        "aside, the form is compiled afresh", c.name)
+            c.replace(c.with_suffix(".c.failed"))
+
+    def drop(self) -> None:
+        if self.fh is not None:
+            fh, self.fh = self.fh, None
+            fcntl.flock(fh, fcntl.LOCK_UN)
+            fh.close()
+
+
+_held: _Lock | None = None  # the lock of the compilation in progress (one per process)
+
+
+def _locking(get_cached_module):
+    """FFCx's ``get_cached_module`` that first takes the lock of :func:`compiling` unless
+    the module is finished (its ``.c.cached`` mark exists): then it only loads it."""
+    @functools.wraps(get_cached_module)
+    def wrapped(module_name, object_names, cache_dir, timeout):
+        ready = Path(cache_dir) / f"{module_name}.c.cached"
+        if _held is not None and not ready.exists():
+            _held.take()
+        return get_cached_module(module_name, object_names, cache_dir, timeout)
+
+    wrapped.brainmech_locking = True
+    return wrapped
+
+
+def _wrap_ffcx() -> None:
+    """Route FFCx's cache look-ups through :func:`_locking` (once per process)."""
+    from ffcx.codegeneration import jit
+
+    if not getattr(jit.get_cached_module, "brainmech_locking", False):
+        jit.get_cached_module = _locking(jit.get_cached_module)
+
+
 @contextlib.contextmanager
 def compiling(expr=None, *, mesh=None):
-    """Hold the cache's lock around the compilation of ``expr`` (a form or an expression)
-    or of the element and dofmap of a function space on ``mesh`` (on rank 0 of the mesh)
-    after moving aside what stopped processes left unfinished."""
-    if (mesh.comm.rank if mesh is not None else _rank(expr)) != 0:
-        yield
+    """Let the compilation of ``expr`` (a form or an expression) or of the element and
+    dofmap of a function space on ``mesh`` hold the cache's lock (on rank 0 of the mesh)
+    from the moment FFCx needs a module the cache has not finished until the end of the
+    block, after moving aside what stopped processes left unfinished."""
+    global _held
+    if _held is not None or (mesh.comm.rank if mesh is not None else _rank(expr)) != 0:
+        yield  # nested in a compilation that holds the lock when needed, or not rank 0
         return
-    cache = cache_dir()
-    cache.mkdir(parents=True, exist_ok=True)
-    with open(cache / LOCK_NAME, "a") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            for c in unfinished(cache):
-                log.warning("JIT cache: %s was left unfinished by a stopped process; moved "
-                            "aside, the form is compiled afresh", c.name)
-                c.replace(c.with_suffix(".c.failed"))
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+    _wrap_ffcx()
+    _held = _Lock(cache_dir())
+    try:
+        yield
+    finally:
+        lock, _held = _held, None
+        lock.drop()

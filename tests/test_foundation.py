@@ -80,6 +80,46 @@ def test_a_compilation_left_unfinished_is_done_again(tmp_path):
         p.unlink()
 
 
+def test_a_cached_form_is_loaded_while_another_process_compiles(tmp_path):
+    """The cache's lock is taken only for a module the cache has not finished: while
+    another process holds it (compiling), a form the cache holds is made at once (before:
+    every form waited, so on a cold cache one rank idled during the other's compilations),
+    and a new form waits for the lock and is compiled once it is free."""
+    import fcntl
+    import random
+    import subprocess
+    import sys
+    import time
+
+    from brain_fe import jit_cache
+
+    cache = jit_cache.cache_dir()
+    cached, new = repr(random.uniform(1.0, 2.0)), repr(random.uniform(2.0, 3.0))
+
+    def start(factor):
+        return subprocess.Popen([sys.executable, "-c", JIT_FORM, factor], text=True,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+    before = set(cache.glob("libffcx_forms_*")) if cache.exists() else set()
+    assert start(cached).communicate(timeout=120)[0].strip() == "compiled"
+    made = set(cache.glob("libffcx_forms_*")) - before
+    with open(cache / jit_cache.LOCK_NAME, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)  # as a process compiling another form holds it
+        try:
+            out, err = start(cached).communicate(timeout=120)  # before: waited for ever
+            assert out.strip() == "compiled", err
+            waiting = start(new)
+            time.sleep(10)  # ample for the imports and the signature
+            assert waiting.poll() is None  # still waiting for the lock ...
+            assert not set(cache.glob("libffcx_forms_*")) - before - made  # ... no C file
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+    out, err = waiting.communicate(timeout=120)
+    assert waiting.returncode == 0 and out.strip() == "compiled", err
+    for p in set(cache.glob("libffcx_forms_*")) - before:  # leave the cache as it was
+        p.unlink()
+
+
 def _set_constant_count(n: int) -> int:
     """Let UFL count the next Constant as ``n`` (UFL 2022: an integer; 2024: a counter), as
     in a process that had made n Constants before; returns the count it replaces."""
