@@ -21,6 +21,7 @@ import ufl
 from . import jit_cache
 
 DOLFINX_VERSION: str = dolfinx.__version__
+jit_cache.install()  # every compilation of this process under the JIT cache's lock
 
 __all__ = [
     "DOLFINX_VERSION",
@@ -38,17 +39,15 @@ __all__ = [
 
 def vector_space(mesh, degree: int, dim: int):
     """Continuous Lagrange space of ``dim`` components (any dim, e.g. 3 on a 2D mesh)."""
-    with jit_cache.compiling(mesh=mesh):  # the element and dofmap are compiled too
-        if hasattr(fem, "functionspace"):  # >= 0.8
-            return fem.functionspace(mesh, ("Lagrange", degree, (dim,)))
-        return fem.VectorFunctionSpace(mesh, ("Lagrange", degree), dim=dim)
+    if hasattr(fem, "functionspace"):  # >= 0.8
+        return fem.functionspace(mesh, ("Lagrange", degree, (dim,)))
+    return fem.VectorFunctionSpace(mesh, ("Lagrange", degree), dim=dim)
 
 
 def scalar_space(mesh, degree: int):
-    with jit_cache.compiling(mesh=mesh):
-        if hasattr(fem, "functionspace"):
-            return fem.functionspace(mesh, ("Lagrange", degree))
-        return fem.FunctionSpace(mesh, ("Lagrange", degree))
+    if hasattr(fem, "functionspace"):
+        return fem.functionspace(mesh, ("Lagrange", degree))
+    return fem.FunctionSpace(mesh, ("Lagrange", degree))
 
 
 # UFL sorts the operands of sums and products into a canonical order and compares two
@@ -87,9 +86,8 @@ def form(expr: ufl.Form, *, fast_math: bool = True):
     the compiled kernels is checked by the tests (eigen-sums to 1e-12 against numpy).
     """
     cflags = ["-O3", "-g0"] + (["-ffast-math"] if fast_math else [])
-    with jit_cache.compiling(expr):
-        return fem.form(expr, **{_JITP: {"cffi_extra_compile_args": cflags,
-                                         "timeout": jit_cache.TIMEOUT_S}})
+    return fem.form(expr, **{_JITP: {"cffi_extra_compile_args": cflags,
+                                     "timeout": jit_cache.TIMEOUT_S}})
 
 
 _EXPR_KW = inspect.signature(fem.Expression.__init__).parameters
@@ -97,10 +95,8 @@ _EXPR_JITP = "jit_options" if "jit_options" in _EXPR_KW else "jit_params"
 
 
 def expression(expr, points):
-    """Compile a UFL expression at reference ``points`` (the JIT cache's lock as
-    :func:`form`)."""
-    with jit_cache.compiling(expr):
-        return fem.Expression(expr, points, **{_EXPR_JITP: {"timeout": jit_cache.TIMEOUT_S}})
+    """Compile a UFL expression at reference ``points`` (FFCx's timeout as :func:`form`)."""
+    return fem.Expression(expr, points, **{_EXPR_JITP: {"timeout": jit_cache.TIMEOUT_S}})
 
 
 def petsc_vec(u: fem.Function):
@@ -181,13 +177,11 @@ def quadrature_space(mesh, degree: int, n: int):
         import basix.ufl
 
         el = basix.ufl.quadrature_element(mesh.basix_cell(), value_shape=(n,), degree=degree)
-        with jit_cache.compiling(mesh=mesh):
-            V = fem.functionspace(mesh, el)
+        V = fem.functionspace(mesh, el)
         return V, V.element.interpolation_points()
     el = ufl.VectorElement("Quadrature", mesh.ufl_cell(), degree=degree, dim=n,
                            quad_scheme="default")
-    with jit_cache.compiling(mesh=mesh):
-        V = fem.FunctionSpace(mesh, el)
+    V = fem.FunctionSpace(mesh, el)
     cell = basix.cell.string_to_type(mesh.topology.cell_type.name)
     points, _ = basix.make_quadrature(cell, degree)
     return V, points

@@ -12,25 +12,24 @@ things went wrong with that here:
 * a process stopped during a compilation leaves its C file without the mark, and every
   later process waited for a compilation that never ends and failed the same way.
 
-So every compilation (inside :func:`compiling`: of a form, an expression, or the element
-and dofmap of a function space, which DOLFINx 0.5 compiles when the space is made) holds an
-exclusive lock on a file of the cache
-(``flock``: released when the process ends, however it ends): while it is held no other
-process of this project is compiling, so a C file without its mark was left by a stopped
-process; it is moved aside (FFCx's own ``.c.failed``) and the form compiled afresh. The
-lock is taken only when FFCx is about to look for a module the cache has not finished
-(FFCx's ``get_cached_module``, wrapped here): a form the cache holds is loaded without it,
-so that on a cold cache one rank does not wait for the other's compilation of another form
-each time it makes a form it has (measured: one core idle while the other compiled). On a
-distributed mesh DOLFINx compiles on rank 0 and the other ranks load the result after a
-broadcast: there rank 0 alone takes the lock (another rank holding it while it waits for
-rank 0's broadcast would block rank 0 for ever). A program outside this project that
-compiles into the same cache does not take the lock: do not run one beside it.
+So every compilation (of a form, an expression, or the element and dofmap of a function
+space, which DOLFINx 0.5 compiles when the space is made) holds an exclusive lock on a file
+of the cache (``flock``: released when the process ends, however it ends): while it is held
+no other process of this project is compiling, so a C file without its mark was left by a
+stopped process; it is moved aside (FFCx's own ``.c.failed``) and the form compiled
+afresh. :func:`install` wraps FFCx's look-up of a module (``get_cached_module``, where FFCx
+creates the C file of a module it is about to compile) so that it takes the lock unless the
+module is finished, and FFCx's ``compile_*`` functions so that they release it when they
+return. A form the cache holds is thus loaded without the lock (on a cold cache one rank
+no longer waits for the other's compilation of another form each time it makes a form it
+has), and the lock is never held across a collective call: on a distributed mesh DOLFINx
+compiles on rank 0 and the other ranks load the module after rank 0 has finished. A program
+outside this project that compiles into the same cache does not take the lock: do not run
+one beside it.
 """
 
 from __future__ import annotations
 
-import contextlib
 import fcntl
 import functools
 import logging
@@ -42,6 +41,7 @@ LOCK_NAME = "brainmech-jit.lock"
 # How long FFCx waits for a compilation of another process (one outside this project,
 # which does not take the lock): generous, the compilations are long
 TIMEOUT_S = 900
+COMPILERS = ("compile_forms", "compile_expressions", "compile_elements")  # those FFCx has
 
 
 def cache_dir() -> Path:
@@ -52,42 +52,26 @@ def cache_dir() -> Path:
     return Path(str(get()["cache_dir"])).expanduser()
 
 
-def _rank(expr) -> int | None:
-    """This process's rank in the communicator of the mesh ``expr`` lives on; None when
-    it cannot be told."""
-    def domains():
-        yield lambda: expr.ufl_domain()
-        yield lambda: expr.ufl_domains()[0]
-        from ufl.domain import extract_unique_domain
-
-        yield lambda: extract_unique_domain(expr)
-
-    for get in domains():
-        try:
-            return int(get().ufl_cargo().comm.rank)
-        except Exception:  # noqa: BLE001, S112 - try the next spelling (UFL versions)
-            continue
-    return None
-
-
 def unfinished(cache: Path) -> list[Path]:
     """The C files of ``cache`` without FFCx's mark of a finished compilation."""
     return [c for c in sorted(cache.glob("*.c")) if not c.with_suffix(".c.cached").exists()]
 
 
 class _Lock:
-    """The cache's lock, taken when first needed (:meth:`take`) and held until :meth:`drop`."""
+    """The lock of one cache directory, held from :meth:`take` to :meth:`drop`."""
 
     def __init__(self, cache: Path):
         self.cache = cache
         self.fh = None
 
     def take(self) -> None:
-        if self.fh is not None:
-            return
         self.cache.mkdir(parents=True, exist_ok=True)
         fh = open(self.cache / LOCK_NAME, "a")
-        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+        except BaseException:
+            fh.close()
+            raise
         self.fh = fh
         for c in unfinished(self.cache):
             log.warning("JIT cache: %s was left unfinished by a stopped process; moved "
@@ -101,45 +85,58 @@ class _Lock:
             fh.close()
 
 
-_held: _Lock | None = None  # the lock of the compilation in progress (one per process)
+_held: _Lock | None = None  # taken by a look-up, dropped when its compile_* call returns
 
 
-def _locking(get_cached_module):
-    """FFCx's ``get_cached_module`` that first takes the lock of :func:`compiling` unless
-    the module is finished (its ``.c.cached`` mark exists): then it only loads it."""
+def _looking_up(get_cached_module):
+    """FFCx's ``get_cached_module`` that first takes the cache's lock unless the module is
+    finished (its C file and ``.c.cached`` mark both exist): then it only loads it."""
     @functools.wraps(get_cached_module)
-    def wrapped(module_name, object_names, cache_dir, timeout):
-        ready = Path(cache_dir) / f"{module_name}.c.cached"
-        if _held is not None and not ready.exists():
-            _held.take()
-        return get_cached_module(module_name, object_names, cache_dir, timeout)
+    def wrapped(module_name, object_names, cache_dir, timeout, *args, **kwargs):
+        global _held
+        c_file = Path(cache_dir) / f"{module_name}.c"
+        ready = c_file.with_suffix(".c.cached")
+        if not (c_file.exists() and ready.exists()):
+            if _held is None:
+                lock = _Lock(Path(cache_dir))
+                lock.take()
+                _held = lock
+            if ready.exists() and not c_file.exists():  # FFCx would compile and then fail
+                log.warning("JIT cache: %s has a mark but no C file; mark moved aside, the "
+                            "form is compiled afresh", ready.name)
+                ready.replace(ready.with_suffix(".cached.orphan"))
+        return get_cached_module(module_name, object_names, cache_dir, timeout, *args,
+                                 **kwargs)
 
-    wrapped.brainmech_locking = True
+    wrapped.brainmech_wrapped = True
     return wrapped
 
 
-def _wrap_ffcx() -> None:
-    """Route FFCx's cache look-ups through :func:`_locking` (once per process)."""
+def _releasing(compile_objects):
+    """FFCx's ``compile_forms`` (or expressions, elements) that drops the cache's lock when
+    it returns (compiled, loaded or failed)."""
+    @functools.wraps(compile_objects)
+    def wrapped(*args, **kwargs):
+        global _held
+        try:
+            return compile_objects(*args, **kwargs)
+        finally:
+            lock, _held = _held, None
+            if lock is not None:
+                lock.drop()
+
+    wrapped.brainmech_wrapped = True
+    return wrapped
+
+
+def install() -> None:
+    """Route FFCx's module look-ups and compilations through the cache's lock (once per
+    process; called when ``brain_fe._compat`` is imported)."""
     from ffcx.codegeneration import jit
 
-    if not getattr(jit.get_cached_module, "brainmech_locking", False):
-        jit.get_cached_module = _locking(jit.get_cached_module)
-
-
-@contextlib.contextmanager
-def compiling(expr=None, *, mesh=None):
-    """Let the compilation of ``expr`` (a form or an expression) or of the element and
-    dofmap of a function space on ``mesh`` hold the cache's lock (on rank 0 of the mesh)
-    from the moment FFCx needs a module the cache has not finished until the end of the
-    block, after moving aside what stopped processes left unfinished."""
-    global _held
-    if _held is not None or (mesh.comm.rank if mesh is not None else _rank(expr)) != 0:
-        yield  # nested in a compilation that holds the lock when needed, or not rank 0
-        return
-    _wrap_ffcx()
-    _held = _Lock(cache_dir())
-    try:
-        yield
-    finally:
-        lock, _held = _held, None
-        lock.drop()
+    if not getattr(jit.get_cached_module, "brainmech_wrapped", False):
+        jit.get_cached_module = _looking_up(jit.get_cached_module)
+    for name in COMPILERS:
+        fn = getattr(jit, name, None)
+        if fn is not None and not getattr(fn, "brainmech_wrapped", False):
+            setattr(jit, name, _releasing(fn))

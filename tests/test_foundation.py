@@ -80,44 +80,48 @@ def test_a_compilation_left_unfinished_is_done_again(tmp_path):
         p.unlink()
 
 
+JIT_FORM_SAID = JIT_FORM.replace("_compat.form(", "print('making', flush=True)\n_compat.form(")
+
+
 def test_a_cached_form_is_loaded_while_another_process_compiles(tmp_path):
     """The cache's lock is taken only for a module the cache has not finished: while
     another process holds it (compiling), a form the cache holds is made at once (before:
     every form waited, so on a cold cache one rank idled during the other's compilations),
-    and a new form waits for the lock and is compiled once it is free."""
+    and a new form waits for the lock and is compiled once it is free.  The processes use
+    a cache of their own (``XDG_CACHE_HOME``), so the user's cache is not touched."""
     import fcntl
-    import random
+    import os
     import subprocess
     import sys
     import time
 
     from brain_fe import jit_cache
 
-    cache = jit_cache.cache_dir()
-    cached, new = repr(random.uniform(1.0, 2.0)), repr(random.uniform(2.0, 3.0))
+    env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path))
+    cache = tmp_path / "fenics"
 
     def start(factor):
-        return subprocess.Popen([sys.executable, "-c", JIT_FORM, factor], text=True,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        return subprocess.Popen([sys.executable, "-c", JIT_FORM_SAID, factor], text=True,
+                                env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
-    before = set(cache.glob("libffcx_forms_*")) if cache.exists() else set()
-    assert start(cached).communicate(timeout=120)[0].strip() == "compiled"
-    made = set(cache.glob("libffcx_forms_*")) - before
+    out, err = start("1.5").communicate(timeout=300)  # compiles the element and the form
+    assert out.split() == ["making", "compiled"], err
+    made = set(cache.glob("libffcx_*"))
     with open(cache / jit_cache.LOCK_NAME, "a") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)  # as a process compiling another form holds it
         try:
-            out, err = start(cached).communicate(timeout=120)  # before: waited for ever
-            assert out.strip() == "compiled", err
-            waiting = start(new)
-            time.sleep(10)  # ample for the imports and the signature
-            assert waiting.poll() is None  # still waiting for the lock ...
-            assert not set(cache.glob("libffcx_forms_*")) - before - made  # ... no C file
+            out, err = start("1.5").communicate(timeout=120)  # before: waited for ever
+            assert out.split() == ["making", "compiled"], err
+            waiting = start("2.5")
+            assert waiting.stdout.readline().strip() == "making"  # imports done, space made
+            time.sleep(3)
+            assert waiting.poll() is None  # waits for the lock ...
+            assert set(cache.glob("libffcx_*")) == made  # ... before making a C file
         finally:
             fcntl.flock(fh, fcntl.LOCK_UN)
-    out, err = waiting.communicate(timeout=120)
-    assert waiting.returncode == 0 and out.strip() == "compiled", err
-    for p in set(cache.glob("libffcx_forms_*")) - before:  # leave the cache as it was
-        p.unlink()
+    out, err = waiting.communicate(timeout=300)
+    assert waiting.returncode == 0 and out.split() == ["compiled"], err
+    assert len(set(cache.glob("libffcx_forms_*.c.cached")) - made) == 1
 
 
 def _set_constant_count(n: int) -> int:
