@@ -57,35 +57,24 @@ def unfinished(cache: Path) -> list[Path]:
     return [c for c in sorted(cache.glob("*.c")) if not c.with_suffix(".c.cached").exists()]
 
 
-class _Lock:
-    """The lock of one cache directory, held from :meth:`take` to :meth:`drop`."""
-
-    def __init__(self, cache: Path):
-        self.cache = cache
-        self.fh = None
-
-    def take(self) -> None:
-        self.cache.mkdir(parents=True, exist_ok=True)
-        fh = open(self.cache / LOCK_NAME, "a")
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX)
-        except BaseException:
-            fh.close()
-            raise
-        self.fh = fh
-        for c in unfinished(self.cache):
-            log.warning("JIT cache: %s was left unfinished by a stopped process; moved "
-                        "aside, the form is compiled afresh", c.name)
-            c.replace(c.with_suffix(".c.failed"))
-
-    def drop(self) -> None:
-        if self.fh is not None:
-            fh, self.fh = self.fh, None
-            fcntl.flock(fh, fcntl.LOCK_UN)
-            fh.close()
+def _lock(cache: Path):
+    """Take the lock of ``cache`` (waiting for it), move aside what stopped processes left
+    unfinished, and return the open lock file (unlocked by closing it)."""
+    cache.mkdir(parents=True, exist_ok=True)
+    fh = open(cache / LOCK_NAME, "a")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+    except BaseException:
+        fh.close()
+        raise
+    for c in unfinished(cache):
+        log.warning("JIT cache: %s was left unfinished by a stopped process; moved "
+                    "aside, the form is compiled afresh", c.name)
+        c.replace(c.with_suffix(".c.failed"))
+    return fh
 
 
-_held: _Lock | None = None  # taken by a look-up, dropped when its compile_* call returns
+_held = None  # the lock file taken by a look-up, closed when its compile_* call returns
 
 
 def _looking_up(get_cached_module):
@@ -98,9 +87,7 @@ def _looking_up(get_cached_module):
         ready = c_file.with_suffix(".c.cached")
         if not (c_file.exists() and ready.exists()):
             if _held is None:
-                lock = _Lock(Path(cache_dir))
-                lock.take()
-                _held = lock
+                _held = _lock(Path(cache_dir))
             if ready.exists() and not c_file.exists():  # FFCx would compile and then fail
                 log.warning("JIT cache: %s has a mark but no C file; mark moved aside, the "
                             "form is compiled afresh", ready.name)
@@ -121,9 +108,9 @@ def _releasing(compile_objects):
         try:
             return compile_objects(*args, **kwargs)
         finally:
-            lock, _held = _held, None
-            if lock is not None:
-                lock.drop()
+            fh, _held = _held, None
+            if fh is not None:
+                fh.close()  # closing the file releases its flock
 
     wrapped.brainmech_wrapped = True
     return wrapped
