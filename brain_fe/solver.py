@@ -66,20 +66,43 @@ class NewtonSolver:
         self.A = fem_petsc.create_matrix(jacobian_form)
         self.b = fem_petsc.create_vector(residual_form)
         self.du = self.b.duplicate()
-        self.ksp = PETSc.KSP().create(comm)
-        self.ksp.setType("preonly")
-        pc = self.ksp.getPC()
-        pc.setType("lu")
-        pc.setFactorSolverType(DIRECT_SOLVER)
-        if comm.size == 1:  # where the diagnosis runs its models; distributed, DOLFINx
-            # 0.9's MUMPS failed a Maxwell run with it (KSP -11): the default stays there
-            self.ksp.setOptionsPrefix(SERIAL_PREFIX)  # one value for every such solver
-            PETSc.Options()[f"{SERIAL_PREFIX}mat_mumps_icntl_14"] = MUMPS_WORKSPACE_PERCENT
-            self.ksp.setFromOptions()  # read by the factor matrix when it is created
-        self.ksp.setOperators(self.A)
+        self.ksp = self._new_ksp()
         self._factorised = (-1, 0)  # (solve, iteration) the factorisation was made at
         self._state = self._iteration = 0
         self.factorisations = 0
+        self.rebuilds = 0  # linear solvers made afresh after a failed solve
+
+    def _new_ksp(self):
+        """LU by :data:`DIRECT_SOLVER` on ``self.A``, its analysis made at the next set-up."""
+        ksp = PETSc.KSP().create(self.comm)
+        ksp.setType("preonly")
+        pc = ksp.getPC()
+        pc.setType("lu")
+        pc.setFactorSolverType(DIRECT_SOLVER)
+        if self.comm.size == 1:  # where the diagnosis runs its models; distributed, DOLFINx
+            # 0.9's MUMPS failed a Maxwell run with it (KSP -11): the default stays there
+            ksp.setOptionsPrefix(SERIAL_PREFIX)  # one value for every such solver
+            PETSc.Options()[f"{SERIAL_PREFIX}mat_mumps_icntl_14"] = MUMPS_WORKSPACE_PERCENT
+            ksp.setFromOptions()  # read by the factor matrix when it is created
+        ksp.setOperators(self.A)
+        return ksp
+
+    def _linear_solve(self, b) -> int:
+        """du from the factorisation; a failed solve (e.g. MUMPS's workspace, sized at the
+        first analysis, too small for this matrix's pivoting: INFOG(1) = -9) is made once
+        more with a solver analysed afresh at the current Jacobian.  The KSP's reason."""
+        self.ksp.solve(b, self.du)
+        reason = self.ksp.getConvergedReason()
+        if reason >= 0:
+            return reason
+        log.warning("linear solver failed (%d%s): analysing afresh and solving again", reason,
+                    self._factor_error())
+        self.ksp.destroy()
+        self.ksp = self._new_ksp()
+        self.rebuilds += 1
+        self.factorise()
+        self.ksp.solve(b, self.du)
+        return self.ksp.getConvergedReason()
 
     def assemble_residual(self, *, with_bcs: bool = True, lift: bool = True):
         """Residual vector; with ``with_bcs`` the Dirichlet rows hold -(g - u).  ``lift``:
@@ -104,6 +127,15 @@ class NewtonSolver:
         self.ksp.setUp()
         self._factorised = (self._state, self._iteration)
         self.factorisations += 1
+
+    def _factor_error(self) -> str:
+        """MUMPS's own error code of the last factorisation (INFOG(1), INFOG(2)), e.g.
+        -9: workspace too small, -10: singular matrix; '' when there is none to read."""
+        try:
+            f = self.ksp.getPC().getFactorMatrix()
+            return f"; MUMPS INFOG(1) = {f.getMumpsInfog(1)}, INFOG(2) = {f.getMumpsInfog(2)}"
+        except Exception:  # noqa: BLE001 - another factorisation package, or none yet
+            return ""
 
     def forget(self) -> None:
         """Drop the factorisation: the next solve factorises afresh, so that a run's
@@ -165,12 +197,12 @@ class NewtonSolver:
                      or (prev is not None and rnorm > self.contraction * prev))
             if fresh:
                 self.factorise()
-            stale_step = not fresh and self._factorised != (self._state, it)
             prev = rnorm
-            self.ksp.solve(b, self.du)
-            if self.ksp.getConvergedReason() < 0:
-                rep.reason = f"linear solver failed ({self.ksp.getConvergedReason()})"
+            reason = self._linear_solve(b)  # may factorise afresh
+            if reason < 0:
+                rep.reason = f"linear solver failed ({reason}{self._factor_error()})"
                 return rep
+            stale_step = self._factorised != (self._state, it)
             x.axpy(-1.0, self.du)
             x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
             before, meets = meets, serial

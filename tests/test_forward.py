@@ -92,6 +92,39 @@ def test_reused_factorisations_change_nothing(axi_glued):
         assert counts[1] <= counts[0] / 2
 
 
+def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, caplog):
+    """A linear solve that fails (here: reported failed once, as MUMPS does when the
+    workspace of its first analysis is too small for a later matrix, INFOG(1) = -9) is
+    made again by a solver analysed afresh at the current Jacobian, with a warning: the
+    run reaches the same states as one without the failure (to 1e-9 of the peak, both
+    converged to 1e-10 of the first residual) instead of cutting its load steps back."""
+    from brain_fe.protocols import compression_tension
+
+    class FailsOnce:  # the real solver's answer, reported as a failed factorisation
+        def __init__(self, ksp):
+            self.ksp = ksp
+
+        def getConvergedReason(self):
+            return -11  # KSP_DIVERGED_PC_FAILED
+
+        def __getattr__(self, name):
+            return getattr(self.ksp, name)
+
+    p = _params(nu0=0.49, kappa=None)
+    prot = compression_tension(0.15)
+    ref = axi_glued.run(prot, p)
+    n0 = axi_glued.newton.rebuilds
+    axi_glued.newton.ksp = FailsOnce(axi_glued.newton.ksp)
+    with caplog.at_level("WARNING", logger="brain_fe.solver"):
+        df = axi_glued.run(prot, p)
+    assert axi_glued.newton.rebuilds == n0 + 1
+    assert not isinstance(axi_glued.newton.ksp, FailsOnce)
+    assert "analysing afresh" in caplog.text and "(-11" in caplog.text
+    a, b = ref.nominal_stress_kPa.to_numpy(), df.nominal_stress_kPa.to_numpy()
+    assert len(a) == len(b)
+    assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
+
+
 def test_lifting_once_per_step_changes_nothing(axi_glued, monkeypatch):
     """On one rank the Dirichlet values are lifted only while u does not meet them (the
     first iteration of a step): the states equal those of lifting at every iteration to
