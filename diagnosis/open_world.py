@@ -93,6 +93,7 @@ NOISE_KINDS = ("white", "filtered", "wander", "drift", "quantised")
 MAX_OUTSIDE = {"axial_fibres": 10.0, "stiffness_drift": 8.0, "permanent_set": 6.0}
 VISIBLE = 1.5  # least base misfit (noise SDs) of a calibrated effect; else drawn again
 MAX_DRAWS = 4
+CALIBRATION_STEPS = 4  # sizes tried per effect (secant-like steps on the base misfit)
 
 
 # --------------------------------------------------------------------------- the specimen
@@ -421,19 +422,26 @@ def _model_geometry(models, spec):
 
 def calibrate(effect: str, target: float, spec, base, shapes, times, sd, models
               ) -> tuple[float, float]:
-    """(size, misfit): the size of ``effect`` alone whose base misfit is ~``target``."""
+    """(size, misfit): the size of ``effect`` alone whose base misfit is ~``target``
+    (within 25 %, else the last size tried, at most the effect's cap); the misfit is
+    always that of the size returned."""
     cap = MAX_OUTSIDE.get(effect, MAX_SIZE.get(effect, 10.0))
-    size, misfit = 1.0, 0.0
-    for _ in range(4):
+
+    def left(size: float) -> float:
         misfit = misfit_left(spec, make_truth(base, {effect: size}, shapes), times, sd,
-                              models)
+                             models)
         log.debug("%s size %.3g: base misfit %.2f (target %.2f)", effect, size, misfit, target)
+        return misfit
+
+    size = 1.0
+    misfit = left(size)
+    for _ in range(CALIBRATION_STEPS - 1):
         if abs(misfit / target - 1) < 0.25:
             break
         new = min(size * float(np.clip(target / max(misfit, 1e-3), 0.1, 10.0)), cap)
-        if new == size:
+        if new == size:  # at the cap
             break
-        size = new
+        size, misfit = new, left(new)
     return size, misfit
 
 

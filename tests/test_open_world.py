@@ -26,6 +26,38 @@ def test_plan_covers_every_kind_in_each_block_of_20():
     assert plan(7, 3)[:3] == plan(7, 3)[:3]  # a case depends on (seed, index) only
 
 
+def test_calibration_returns_a_size_with_its_own_misfit(monkeypatch):
+    """An effect's size is calibrated by multiplicative steps on its base misfit: where
+    the steps have not reached the target within 25 % when they run out, the size
+    returned is the last one evaluated and the misfit is its own (before, the next,
+    never evaluated size came back with the last misfit).  A base misfit growing as
+    size^0.1 from exp(-0.6) of the target at size 1 closes 10 % of the log gap per step:
+    sizes 1, e^0.6, ... (4 evaluations), the last 0.44 in log below the target."""
+    from diagnosis import open_world
+
+    calls = []
+
+    def base_misfit(size):
+        return 2.0 * np.exp(-0.6) * size ** 0.1
+
+    def fake_misfit(spec, truth, *a, **k):
+        calls.append(truth)
+        return base_misfit(truth)
+
+    monkeypatch.setattr(open_world, "misfit_left", fake_misfit)
+    monkeypatch.setattr(open_world, "make_truth", lambda base, sizes, shapes: sizes["x"])
+    size, misfit = open_world.calibrate("x", 2.0, None, None, None, None, None, {})
+    assert len(calls) == open_world.CALIBRATION_STEPS == 4
+    assert size == calls[-1]
+    assert misfit == pytest.approx(base_misfit(size), rel=1e-12)
+    assert np.log(2.0 / misfit) == pytest.approx(0.6 * 0.9 ** 3, rel=1e-9)
+    # at the cap (10 for an effect without one of its own): stops there, its own misfit
+    calls.clear()
+    size, misfit = open_world.calibrate("x", 50.0, None, None, None, None, None, {})
+    assert size == 10.0 and misfit == pytest.approx(base_misfit(10.0), rel=1e-12)
+    assert calls == [1.0, 10.0]  # the step to 10 is clipped to x10; at the cap it stops
+
+
 def test_a_pair_is_scored_as_a_set():
     """A verdict names a set of effects: alphabetical since open-world-4, in the order of
     addition before; either spelling of the right set scores, any other set does not."""
