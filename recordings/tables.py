@@ -1,32 +1,8 @@
 """Reading, validating and writing the specimens and recordings tables (DESIGN.md §6).
 
-The columns are defined in :mod:`recordings.schema`, the cell parsing and the one-line
-errors in :mod:`recordings.cells`.
-
-**Specimens table** (one row per specimen)::
-
-    specimen   str    unique id
-    region     str    brain region (e.g. ``cortex``)
-    brain      str    id of the donor brain (integers are accepted and turned into text)
-    radius_mm  float  undeformed radius R [mm], > 0
-    height_mm  float  undeformed height H [mm], > 0
-    ...               any further columns (``notes``, composition, ...) are kept
-
-**Recordings table** (one row per sample point)::
-
-    specimen            str    specimen id (or a region name for region-averaged curves)
-    test                str    ``compression_tension`` or ``torsion``
-    amplitude           float  stretch amplitude A in (0, 1) (protocol 1 -> 1-A -> 1 -> 1+A -> 1)
-                               or maximum amount of shear at the outer radius (> 0)
-    cycle               int    >= 1
-    branch              str    ``loading`` or ``unloading``
-    time_s              float  time [s], finite, non-decreasing within a series
-    stretch             float  lambda = h / H [-], compression_tension rows: required, > 0
-    shear               float  gamma = theta R / H [-] at the outer radius, torsion: required
-    nominal_stress_kPa  float  F / (pi R^2) [kPa], compression_tension rows: required
-    torque_mNmm         float  torque on the top plate [mN mm], torsion rows: required
-    axial_force_mN      float  axial force [mN], optional (empty / NaN allowed)
-    ...                        any further columns (e.g. ``shear_stress_kPa``) are kept
+The two tables (specimens: one row per specimen; recordings: one row per sample point) and
+their columns are defined once, in :mod:`recordings.schema`; the cell parsing and the
+one-line errors are in :mod:`recordings.cells`.
 
 A column that does not apply to a row's test may be empty; if it holds a value, that value
 must still be a finite number.  A *series* (one curve) is all rows with the same
