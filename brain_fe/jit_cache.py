@@ -101,13 +101,18 @@ def _looking_up(get_cached_module):
 
 def _releasing(compile_objects):
     """FFCx's ``compile_forms`` (or expressions, elements) that drops the cache's lock when
-    it returns (compiled, loaded or failed)."""
+    it returns (compiled, loaded or failed), and gives the root logger its handlers back:
+    FFCx 0.9 swaps them for a string buffer while the C compiler runs and does not restore
+    them when the compilation raises, so every later log line would be lost."""
     @functools.wraps(compile_objects)
     def wrapped(*args, **kwargs):
         global _held
+        root = logging.getLogger()
+        handlers = list(root.handlers)
         try:
             return compile_objects(*args, **kwargs)
         finally:
+            root.handlers = handlers
             fh, _held = _held, None
             if fh is not None:
                 fh.close()  # closing the file releases its flock

@@ -124,6 +124,33 @@ def test_a_cached_form_is_loaded_while_another_process_compiles(tmp_path):
     assert len(set(cache.glob("libffcx_forms_*.c.cached")) - made) == 1
 
 
+def test_a_failed_compilation_leaves_the_log_handlers_in_place():
+    """FFCx 0.9 replaces the root logger's handlers by a string buffer while its C
+    compiler runs and restores them only when the compilation succeeds; after a failed one
+    every log line of the run would vanish.  The wrapped compile functions restore them,
+    and release the cache's lock, whatever happens."""
+    import logging
+
+    from brain_fe import jit_cache
+
+    root = logging.getLogger()
+    mine = logging.NullHandler()
+    root.addHandler(mine)
+    before = list(root.handlers)
+
+    def failing_compile(*args, **kwargs):  # what FFCx 0.9 does when the compiler fails
+        root.handlers = [logging.StreamHandler()]
+        raise RuntimeError("compiler failed")
+
+    try:
+        with pytest.raises(RuntimeError, match="compiler failed"):
+            jit_cache._releasing(failing_compile)()
+        assert root.handlers == before
+        assert jit_cache._held is None
+    finally:
+        root.removeHandler(mine)
+
+
 def _set_constant_count(n: int) -> int:
     """Let UFL count the next Constant as ``n`` (UFL 2022: an integer; 2024: a counter), as
     in a process that had made n Constants before; returns the count it replaces."""
