@@ -103,7 +103,7 @@ class DirectSensitivities:
             r.copy(self._rhs)
             self._rhs.scale(-1.0)
             _compat.set_bc(self._rhs, m.bcs, x, 0.0)
-            m.newton.ksp.solve(self._rhs, zvec)
+            m.newton.solve_tangent(self._rhs, zvec)
             _ghost_forward(zvec)
             a = self._action
             with a.localForm() as al:
@@ -180,7 +180,7 @@ class PathSensitivities:
             perturb(p, 0.0, True)
             _compat.set_bc(rhs, m.bcs, x, 0.0)
             z = self._z[p]
-            m.newton.ksp.solve(rhs, z)
+            m.newton.solve_tangent(rhs, z)
             _ghost_forward(z)
             if off:  # add the shift of the top face that keeps the axial force zero
                 perturb(p, eps, True)
@@ -216,7 +216,7 @@ class PathSensitivities:
         _compat.set_bc(rhs, m.bcs, x, 0.0)
         rhs.axpy(1.0, e)
         zw = x.duplicate()
-        m.newton.ksp.solve(rhs, zw)
+        m.newton.solve_tangent(rhs, zw)
         _ghost_forward(zw)
         x.axpy(h, zw)
         _ghost_forward(x)

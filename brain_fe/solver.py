@@ -87,11 +87,12 @@ class NewtonSolver:
         ksp.setOperators(self.A)
         return ksp
 
-    def _linear_solve(self, b) -> int:
-        """du from the factorisation; a failed solve (e.g. MUMPS's workspace, sized at the
-        first analysis, too small for this matrix's pivoting: INFOG(1) = -9) is made once
-        more with a solver analysed afresh at the current Jacobian.  The KSP's reason."""
-        self.ksp.solve(b, self.du)
+    def linear_solve(self, b, x) -> int:
+        """x from the current factorisation and right-hand side b; a failed solve (e.g.
+        MUMPS's workspace, sized at the first analysis, too small for this matrix's
+        pivoting: INFOG(1) = -9) is made once more with a solver analysed afresh at the
+        Jacobian of the current u.  Returns the KSP's converged reason (< 0: failed)."""
+        self.ksp.solve(b, x)
         reason = self.ksp.getConvergedReason()
         if reason >= 0:
             return reason
@@ -101,8 +102,16 @@ class NewtonSolver:
         self.ksp = self._new_ksp()
         self.rebuilds += 1
         self.factorise()
-        self.ksp.solve(b, self.du)
+        self.ksp.solve(b, x)
         return self.ksp.getConvergedReason()
+
+    def solve_tangent(self, b, x) -> None:
+        """x = K^-1 b with the factorisation of the converged state (the sensitivities'
+        solves); raises :class:`ConvergenceError` when the linear solve fails."""
+        reason = self.linear_solve(b, x)
+        if reason < 0:
+            raise ConvergenceError(f"tangent solve of the sensitivities failed ({reason}"
+                                   f"{self._factor_error()})")
 
     def assemble_residual(self, *, with_bcs: bool = True, lift: bool = True):
         """Residual vector; with ``with_bcs`` the Dirichlet rows hold -(g - u).  ``lift``:
@@ -198,7 +207,7 @@ class NewtonSolver:
             if fresh:
                 self.factorise()
             prev = rnorm
-            reason = self._linear_solve(b)  # may factorise afresh
+            reason = self.linear_solve(b, self.du)  # may factorise afresh
             if reason < 0:
                 rep.reason = f"linear solver failed ({reason}{self._factor_error()})"
                 return rep

@@ -123,6 +123,22 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
     a, b = ref.nominal_stress_kPa.to_numpy(), df.nominal_stress_kPa.to_numpy()
     assert len(a) == len(b)
     assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
+    # a sensitivity's tangent solve that fails again after the fresh analysis raises (the
+    # model's failure, which the diagnosis reports) instead of returning a wrong z
+    from brain_fe.solver import ConvergenceError
+
+    newton = axi_glued.newton
+    real_new_ksp = newton._new_ksp
+    newton._new_ksp = lambda: FailsOnce(real_new_ksp())
+    newton.ksp = FailsOnce(newton.ksp)
+    x = newton.du.duplicate()
+    try:
+        with pytest.raises(ConvergenceError, match="tangent solve"):
+            newton.solve_tangent(newton.b, x)
+    finally:
+        del newton._new_ksp
+        newton.ksp = real_new_ksp()
+        newton.forget()
 
 
 def test_lifting_once_per_step_changes_nothing(axi_glued, monkeypatch):
