@@ -22,6 +22,8 @@ The signal functions below take plain arrays in the project's units and never to
 
 from __future__ import annotations
 
+import codecs
+import logging
 import math
 import re
 from dataclasses import dataclass
@@ -31,6 +33,8 @@ import numpy as np
 import pandas as pd
 
 from brain_fe.vocabulary import HOLD, LOADING, UNLOADING
+
+log = logging.getLogger(__name__)
 
 CONTACT_K = (3.0, 10.0)  # the two thresholds (baseline SDs) of the contact detection
 SMOOTH = 5  # samples of the centred moving average applied to the force for the detection
@@ -125,17 +129,42 @@ def _split_unit(text: str) -> tuple[str, str]:
     return (m.group(1).strip(), m.group(2).strip()) if m else (text.strip(), "")
 
 
+def _decode(data: bytes) -> str:
+    """The text of an export: UTF-16 (with its byte-order mark, or without one when every
+    other byte of the start is zero, as Windows writes "Unicode" text), else UTF-8 (a
+    mark allowed), else Latin-1."""
+    if data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        return data.decode("utf-16")
+    head = data[:400]
+    if len(head) >= 4:
+        for zeros, codec in ((head[1::2], "utf-16-le"), (head[0::2], "utf-16-be")):
+            if zeros.count(0) == len(zeros):
+                return data.decode(codec, errors="replace")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
+
+
+_DECIMAL_COMMA = re.compile(r"^\s*[+-]?\d*,\d+(?:[eE][+-]?\d+)?\s*$")
+
+
+def _decimal_commas(rows: list[list[str]]) -> bool:
+    """Whether the numbers of a tab-separated export are written with decimal commas (a
+    European setting of the instrument's PC): some cell is a number with one comma, and
+    no cell holds a decimal point."""
+    cells = [c for r in rows for c in r]
+    return not any("." in c for c in cells) and any(_DECIMAL_COMMA.match(c) for c in cells)
+
+
 def read_txt(path) -> Table:
-    """A tab-separated export: one header line of ``Name (unit)``, then numbers."""
+    """A tab-separated export: one header line of ``Name (unit)``, then numbers (decimal
+    points, or decimal commas throughout the file); UTF-8, Latin-1 or UTF-16 text."""
     try:
         data = Path(path).read_bytes()
     except OSError as e:
         raise RheometerError(f"{path}: cannot read ({e.strerror or e})") from None
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        text = data.decode("latin-1")
-    lines = text.splitlines()
+    lines = _decode(data).splitlines()
     header = [h.strip() for h in lines[0].split("\t")] if lines else []
     while header and not header[-1]:
         header.pop()
@@ -154,6 +183,9 @@ def read_txt(path) -> Table:
         numbers.append(i)
     if not rows:
         raise RheometerError(f"{path}: no data lines below the header")
+    if _decimal_commas(rows):
+        log.info("%s: numbers with decimal commas", path)
+        rows = [[c.replace(",", ".") for c in r] for r in rows]
     names, units = zip(*(_split_unit(h) for h in header), strict=True)
     return Table(str(path), "line", 1, 1, list(names), list(units),
                  np.array(rows, dtype=object), np.array(numbers))

@@ -177,6 +177,27 @@ def test_import_writes_valid_tables(tmp_path):
     assert report.count("\n- ") == 2 and "contact gap" in report
 
 
+def test_text_exports_in_utf16_or_with_decimal_commas_import_alike(tmp_path):
+    """The same raw trace saved as Windows "Unicode" text (UTF-16 with and without its
+    byte-order mark) or with decimal commas (a European number setting) imports to the
+    same specimen, rows and noise as the UTF-8 file with decimal points (before: a field
+    count error, and 'not a number' at the first comma)."""
+    f = tmp_path / "mat" / "2s" / "dc-1.txt"
+    f.parent.mkdir(parents=True)
+    write_trace(f)
+    text = f.read_text()
+    variants = {"utf16.txt": text.encode("utf-16"), "utf16le.txt": text.encode("utf-16-le"),
+                "comma.txt": text.replace(".", ",").encode()}
+    ref = import_file(f, "mat/dc-1")
+    for name, data in variants.items():
+        g = f.with_name(name)
+        g.write_bytes(data)
+        spec, rows, noise, _ = import_file(g, "mat/dc-1")
+        assert spec == ref[0], name
+        assert rows.equals(ref[1]), name
+        assert noise == ref[2], name
+
+
 def test_bad_text_line_is_named(tmp_path):
     f = tmp_path / "m" / "g" / "x.txt"
     f.parent.mkdir(parents=True)
