@@ -195,7 +195,8 @@ def read_workbook(path) -> dict[str, Table]:
     """The step sheets of a TRIOS workbook (all but ``Details``), each with a names row and a
     units row (a title row above them is skipped)."""
     try:
-        sheets = pd.read_excel(path, sheet_name=None, header=None, dtype=object)
+        sheets = pd.read_excel(path, sheet_name=None, header=None, dtype=object,
+                               keep_default_na=False)  # a cell "n/a" is named as such
     except Exception as exc:  # noqa: BLE001 - xlrd/openpyxl/zip errors of a damaged file
         msg = " ".join(str(exc).split())[:120]
         raise RheometerError(f"{path}: cannot read as an Excel workbook "

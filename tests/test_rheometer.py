@@ -226,6 +226,16 @@ def test_cli_malformed_workbook_one_line_no_output(tmp_path):
     assert [q.name for q in tmp_path.iterdir()] == ["m"]  # no stage left either
 
 
+def test_workbook_text_cell_is_quoted_not_called_empty(tmp_path):
+    """A text cell that pandas would read as missing ('n/a', 'NA') is named as written."""
+    gap = np.linspace(5000.0, 4000.0, 30)
+    f = tmp_path / "na.xlsx"
+    _write_xlsx(f, {"Details": DETAILS, "Axial - 1": _axial_sheet(gap, 0.001 * (5000 - gap),
+                                                                  bad=(3, "n/a"))})
+    with pytest.raises(RheometerError, match=r"row 7: column 'Gap' not a number \('n/a'\)"):
+        import_file(f, "m/na")
+
+
 def test_contact_uncertainty_grows_with_noise():
     t = np.arange(0, 3, 0.004)
     gap = np.interp(t, [0, 1, 3], [6.0, 6.0, 2.0])
