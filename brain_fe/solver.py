@@ -38,6 +38,10 @@ DIRECT_SOLVER = "mumps"
 # (MUMPS ICNTL(14), default 20-35):
 MUMPS_WORKSPACE_PERCENT = 200
 SERIAL_PREFIX = "brainmech_newton_serial_"  # PETSc options of the one-rank solvers
+# MUMPS's INFOG(1) when a workspace or buffer sized at the analysis was too small (-8, -9:
+# factorisation; -11, -12, -14, -15: solution and refinement; -17, -20: send and receive
+# buffers; -19: ICNTL(23)): a solver analysed afresh at the current matrix sizes them for it
+MUMPS_WORKSPACE_ERRORS = frozenset({-8, -9, -11, -12, -14, -15, -17, -19, -20})
 
 
 class NewtonSolver:
@@ -88,13 +92,15 @@ class NewtonSolver:
         return ksp
 
     def linear_solve(self, b, x) -> int:
-        """x from the current factorisation and right-hand side b; a failed solve (e.g.
-        MUMPS's workspace, sized at the first analysis, too small for this matrix's
-        pivoting: INFOG(1) = -9) is made once more with a solver analysed afresh at the
-        Jacobian of the current u.  Returns the KSP's converged reason (< 0: failed)."""
+        """x from the current factorisation and right-hand side b.  A solve that fails
+        because MUMPS's workspace, sized at the solver's first analysis, is too small for
+        this matrix's pivoting (:data:`MUMPS_WORKSPACE_ERRORS`) is made once more with a
+        solver analysed afresh at the Jacobian of the current u; any other failure (a
+        numerically singular Jacobian, INFOG(1) = -10) is returned as it is, for the load
+        step to be cut back.  Returns the KSP's converged reason (< 0: failed)."""
         self.ksp.solve(b, x)
         reason = self.ksp.getConvergedReason()
-        if reason >= 0:
+        if reason >= 0 or self._mumps_error()[0] not in MUMPS_WORKSPACE_ERRORS:
             return reason
         log.warning("linear solver failed (%d%s): analysing afresh and solving again", reason,
                     self._factor_error())
@@ -137,14 +143,19 @@ class NewtonSolver:
         self._factorised = (self._state, self._iteration)
         self.factorisations += 1
 
-    def _factor_error(self) -> str:
-        """MUMPS's own error code of the last factorisation (INFOG(1), INFOG(2)), e.g.
-        -9: workspace too small, -10: singular matrix; '' when there is none to read."""
+    def _mumps_error(self) -> tuple[int, int]:
+        """MUMPS's INFOG(1), INFOG(2) of the last factorisation (0, 0 when there is none to
+        read: another factorisation package, or none made yet)."""
         try:
             f = self.ksp.getPC().getFactorMatrix()
-            return f"; MUMPS INFOG(1) = {f.getMumpsInfog(1)}, INFOG(2) = {f.getMumpsInfog(2)}"
-        except Exception:  # noqa: BLE001 - another factorisation package, or none yet
-            return ""
+            return int(f.getMumpsInfog(1)), int(f.getMumpsInfog(2))
+        except Exception:  # noqa: BLE001 - not MUMPS, or no factor matrix yet
+            return 0, 0
+
+    def _factor_error(self) -> str:
+        """MUMPS's error code for a message ('' when there is none)."""
+        e1, e2 = self._mumps_error()
+        return f"; MUMPS INFOG(1) = {e1}, INFOG(2) = {e2}" if e1 else ""
 
     def forget(self) -> None:
         """Drop the factorisation: the next solve factorises afresh, so that a run's

@@ -97,8 +97,18 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
     workspace of its first analysis is too small for a later matrix, INFOG(1) = -9) is
     made again by a solver analysed afresh at the current Jacobian, with a warning: the
     run reaches the same states as one without the failure (to 1e-9 of the peak, both
-    converged to 1e-10 of the first residual) instead of cutting its load steps back."""
+    converged to 1e-10 of the first residual) instead of cutting its load steps back.  A
+    singular Jacobian (INFOG(1) = -10) is not solved again: its load step is cut back."""
     from brain_fe.protocols import compression_tension
+    from brain_fe.solver import ConvergenceError
+
+    class Factor:  # MUMPS's report of a workspace too small
+        def getMumpsInfog(self, i):
+            return {1: -9, 2: 1234}[i]
+
+    class PC:
+        def getFactorMatrix(self):
+            return Factor()
 
     class FailsOnce:  # the real solver's answer, reported as a failed factorisation
         def __init__(self, ksp):
@@ -106,6 +116,9 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
 
         def getConvergedReason(self):
             return -11  # KSP_DIVERGED_PC_FAILED
+
+        def getPC(self):
+            return PC()
 
         def __getattr__(self, name):
             return getattr(self.ksp, name)
@@ -119,13 +132,22 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
         df = axi_glued.run(prot, p)
     assert axi_glued.newton.rebuilds == n0 + 1
     assert not isinstance(axi_glued.newton.ksp, FailsOnce)
-    assert "analysing afresh" in caplog.text and "(-11" in caplog.text
+    assert "analysing afresh" in caplog.text and "INFOG(1) = -9" in caplog.text
     a, b = ref.nominal_stress_kPa.to_numpy(), df.nominal_stress_kPa.to_numpy()
     assert len(a) == len(b)
     assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
+    # any other failure (a singular Jacobian, INFOG(1) = -10) is not solved again: the
+    # load step is cut back, as before
+    Factor.getMumpsInfog = lambda self, i: {1: -10, 2: 77}[i]
+    axi_glued.newton.ksp = FailsOnce(axi_glued.newton.ksp)
+    with pytest.raises(ConvergenceError, match=r"INFOG\(1\) = -10"):
+        axi_glued.run(prot, p)
+    assert axi_glued.newton.rebuilds == n0 + 1
+    axi_glued.newton.ksp = axi_glued.newton.ksp.ksp
+    axi_glued.newton.forget()
     # a sensitivity's tangent solve that fails again after the fresh analysis raises (the
     # model's failure, which the diagnosis reports) instead of returning a wrong z
-    from brain_fe.solver import ConvergenceError
+    Factor.getMumpsInfog = lambda self, i: {1: -9, 2: 1234}[i]
 
     newton = axi_glued.newton
     real_new_ksp = newton._new_ksp
