@@ -71,7 +71,10 @@ class SurrogateSimulator:
             b = self.bundles[key]
             X = np.column_stack([np.full(len(control), m), np.full(len(control), a), control])
             b.check_range(X)
-            s, ds = b.estimator.predict_with_gradient(X)
+            if wrt:
+                s, ds = b.estimator.predict_with_gradient(X)
+            else:  # the same values without the derivatives' cost
+                s = b.estimator.predict(X)
             scale = np.where(channel == "torque", polar, 1.0)
             y[rows] = s * scale
             for j, q in enumerate(wrt):

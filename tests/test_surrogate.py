@@ -99,3 +99,23 @@ def test_refuses_outside_training_range_and_other_conditions(tiny_models):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         b.check_conditions(nu0=0.49, radius_mm=4.0, height_mm=5.0)
+
+
+def test_gradient_matches_central_differences(tiny_models):
+    """predict_with_gradient: the values of predict (bit for bit) and d stress/d(mu, alpha)
+    against central differences of predict (relative step 1e-6: agreement to 1e-6 of the
+    largest derivative)."""
+    from surrogate.persist import load_surrogates
+
+    out, _ = tiny_models
+    for b in load_surrogates(str(out)).values():
+        lo, hi = b.control_range
+        mu, alpha = np.mean(b.mu_range), np.mean(b.alpha_range)
+        X = np.column_stack([np.full(25, mu), np.full(25, alpha), np.linspace(lo, hi, 25)])
+        f, df = b.estimator.predict_with_gradient(X)
+        np.testing.assert_array_equal(f, b.estimator.predict(X))
+        for j, h in enumerate((1e-6 * mu, 1e-6 * abs(alpha))):
+            e = np.zeros(3)
+            e[j] = h
+            fd = (b.estimator.predict(X + e) - b.estimator.predict(X - e)) / (2 * h)
+            np.testing.assert_allclose(df[:, j], fd, rtol=0, atol=1e-6 * np.abs(fd).max())
