@@ -19,7 +19,7 @@ from scipy import optimize
 from brain_fe.parameters import Param
 from brain_fe.vocabulary import torque_mNmm
 from recordings.observations import peak_per_series
-from simulators.base import LastCall
+from simulators.base import PredictionMemo
 
 from .effects import library
 
@@ -109,7 +109,7 @@ def fit(sim, obs: pd.DataFrame, sigma: np.ndarray, start: dict, names: list, *,
     x0 = np.clip([start[n] for n in names], lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
     fixed = {k: v for k, v in start.items() if k not in names}
     value = obs["value"].to_numpy(float)
-    pred = LastCall(sim)
+    pred = PredictionMemo(sim)
     refused = set()  # distinct trial points the model could not solve
 
     def evaluate(x):

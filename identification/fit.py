@@ -26,7 +26,7 @@ from scipy.optimize import least_squares
 from brain_fe.parameters import alpha as ALPHA
 from brain_fe.parameters import mu as MU
 from brain_fe.vocabulary import COMPRESSION_TENSION
-from simulators.base import LastCall, Simulator
+from simulators.base import PredictionMemo, Simulator
 from simulators.coordinates import NU0
 
 from .objective import curve_norms, gavrus_errors, residuals
@@ -81,7 +81,7 @@ def _values(z, nu0: float) -> dict:
     return {MU(0): float(np.exp(z[0])), ALPHA(0): float(z[1]), NU0: nu0}
 
 
-def _least_squares(pred: LastCall, z0, zlo, zhi, *, history: list, **kw):
+def _least_squares(pred: PredictionMemo, z0, zlo, zhi, *, history: list, **kw):
     """least_squares in z = (ln mu, alpha) on the Gavrus residuals of ``pred.sim``."""
     sim = pred.sim
     obs = sim.obs
@@ -117,7 +117,7 @@ def stage_surrogate(sim: Simulator, *, grid: int = 9) -> Stage:
     # keep the start strictly inside the box (trust-region reflective needs it)
     z0 = np.clip(best[1], zlo + 1e-6 * (zhi - zlo), zhi - 1e-6 * (zhi - zlo))
     hist: list = []
-    res = _least_squares(LastCall(sim), z0, zlo, zhi, history=hist, ftol=1e-12, xtol=1e-10,
+    res = _least_squares(PredictionMemo(sim), z0, zlo, zhi, history=hist, ftol=1e-12, xtol=1e-10,
                          gtol=1e-12, max_nfev=400)
     mu, alpha = float(np.exp(res.x[0])), float(res.x[1])
     y = sim.predict(_values(res.x, sim.nu0)).y
@@ -145,7 +145,7 @@ def stage_fe(sim: Simulator, mu0: float, alpha0: float, *,
     z0 = np.clip([np.log(mu0), alpha0], zlo + 1e-9, zhi - 1e-9)
     # xtol 1e-5: a parameter change of 1e-5 (relative) is ~1 % of a typical standard error
     # with 1 % noise, so further FE solves would not change the answer
-    memo = LastCall(sim)
+    memo = PredictionMemo(sim)
     res = _least_squares(memo, z0, zlo, zhi, history=hist, ftol=1e-6, xtol=1e-5, gtol=1e-8,
                          max_nfev=max_evaluations)
     mu, alpha = float(np.exp(res.x[0])), float(res.x[1])

@@ -9,6 +9,7 @@ built for, in row order, in the channel's unit.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
@@ -52,19 +53,25 @@ class Simulator(Protocol):
         ...
 
 
-class LastCall:
-    """Memo of a simulator's last prediction: optimisers ask for the residual and the
-    Jacobian at one point in two calls."""
+class PredictionMemo:
+    """Memo of a simulator's predictions within one fit: optimisers ask for the residual
+    and the Jacobian at one point in two calls, and a trust-region fit returns a point it
+    evaluated before its last (rejected) trials, which the caller predicts again.  Every
+    prediction starts afresh (:meth:`brain_fe.solver.NewtonSolver.forget`), so one made
+    again equals the one kept.  Keeps the last ``size`` points (a fit's evaluations)."""
 
-    def __init__(self, sim: Simulator):
+    def __init__(self, sim: Simulator, size: int = 64):
         self.sim = sim
-        self._key = None
-        self._out: Prediction | None = None
+        self.size = size
+        self._memo: OrderedDict = OrderedDict()
 
     def __call__(self, values: Mapping[Param, float], wrt: Sequence[Param]) -> Prediction:
         key = (tuple(sorted((str(k), round(float(v), 14)) for k, v in values.items())),
                tuple(map(str, wrt)))
-        if key != self._key:
-            self._out = self.sim.predict(values, wrt)
-            self._key = key
-        return self._out
+        if key in self._memo:
+            self._memo.move_to_end(key)
+        else:
+            self._memo[key] = self.sim.predict(values, wrt)
+            if len(self._memo) > self.size:
+                self._memo.popitem(last=False)
+        return self._memo[key]
