@@ -130,7 +130,7 @@ class StressSurrogate(RegressorMixin, BaseEstimator):
         h = (_log_first_column(X) - sc.mean_) / sc.scale_
         # dh/d(mu, alpha), one row per (point, parameter): d log(mu)/d mu = 1 / mu, then
         # the scaler.  Stacked so that each layer is one matrix product (BLAS): an einsum
-        # over (point, input, parameter) took ~30 times as long and made the surrogate
+        # over (point, input, parameter) took 40-55 times as long and made the surrogate
         # stage of an identification cost more than its FE stage
         n = len(X)
         dh = np.zeros((n, 2, X.shape[1]))
