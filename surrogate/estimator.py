@@ -128,27 +128,23 @@ class StressSurrogate(RegressorMixin, BaseEstimator):
         reg = self.model_.regressor_
         sc, mlp = reg.named_steps["scale"], reg.named_steps["mlp"]
         h = (_log_first_column(X) - sc.mean_) / sc.scale_
-        # dh/d(mu, alpha), one row per (point, parameter): d log(mu)/d mu = 1 / mu, then
-        # the scaler.  Stacked so that each layer is one matrix product (BLAS): an einsum
+        # dh/d(mu, alpha), one (points x width) slice per parameter: d log(mu)/d mu = 1 / mu,
+        # then the scaler.  Each layer is then a matrix product per slice (BLAS): an einsum
         # over (point, input, parameter) took 40-55 times as long and made the surrogate
         # stage of an identification cost more than its FE stage
-        n = len(X)
-        dh = np.zeros((n, 2, X.shape[1]))
-        dh[:, 0, 0] = 1.0 / (X[:, 0] * sc.scale_[0])
-        dh[:, 1, 1] = 1.0 / sc.scale_[1]
-        dh = dh.reshape(2 * n, -1)
+        dh = np.zeros((2, *X.shape))
+        dh[0, :, 0] = 1.0 / (X[:, 0] * sc.scale_[0])
+        dh[1, :, 1] = 1.0 / sc.scale_[1]
         last = len(mlp.coefs_) - 1
         for i, (W, b) in enumerate(zip(mlp.coefs_, mlp.intercepts_, strict=True)):
             h = h @ W + b
             dh = dh @ W
             if i < last:
                 h = _ACT[mlp.activation](h)
-                dh = (dh.reshape(n, 2, -1) * _DACT[mlp.activation](h)[:, None, :]
-                      ).reshape(2 * n, -1)
-        dh = dh.reshape(n, 2, -1)
+                dh = dh * _DACT[mlp.activation](h)
         t = self.model_.transformer_
         f = h[:, 0] * t.scale_[0] + t.mean_[0]
-        df = dh[:, :, 0] * t.scale_[0]
+        df = dh[:, :, 0].T * t.scale_[0]
         if not self.scale_by_mu:
             return f, df
         mu = X[:, 0]
