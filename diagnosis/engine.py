@@ -36,7 +36,6 @@ candidates are listed).
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import time
@@ -46,8 +45,6 @@ import numpy as np
 import pandas as pd
 
 from brain_fe.ends import resolve
-from brain_fe.logs import rank_local
-from brain_fe.parallel import SharedCounter, dynamic_items
 from brain_fe.parameters import Param
 from simulators.coordinates import NU0
 
@@ -56,6 +53,7 @@ from .drift import drift_model
 from .effects import BASE_NAMES, check_effects, library, parameter_names, separating_test
 from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
 from .noise import NoiseModel, estimate_noise, fit_noise
+from .notes import contact_event_notes, contact_notes, edge_notes, noise_doubt, wander_doubt
 from .remaining import remaining, systematic_basis, trend_change
 from .screen import (
     AT_DESIGN,
@@ -79,6 +77,7 @@ from .selection import (
     compatible,
     run_round,
 )
+from .sharing import share_with, sharing
 
 log = logging.getLogger(__name__)
 
@@ -92,10 +91,6 @@ MAX_EFFECTS = 3
 # trend with time (physics no library effect makes, which they may stand in for); otherwise
 # the verdict is ``unexplained``, with the library's closest model beside it
 EXPLAINS_FRACTION = 0.5
-# Without a repeated ramp, wander and a smooth misfit cannot be told apart: when the noise
-# model needs a wander this many times the stated instrument noise to call the residual
-# noise, the diagnosis says it cannot tell instead of "nothing to explain"
-WANDER_FACTOR = 5.0
 
 
 @dataclass
@@ -157,7 +152,7 @@ class Diagnosis:
     def rms(self, fit: Fit) -> dict:
         """Residual RMS per (curve, channel) in recording units and in units of the noise."""
         out = {}
-        r = fit.prediction - self.obs["value"].to_numpy(float)
+        r = fit.residual(self.obs)
         sd = self.sigma
         for (c, ch), g in self.obs.groupby(["curve", "channel"], sort=False):
             i = g.index.to_numpy()
@@ -167,7 +162,7 @@ class Diagnosis:
         return out
 
     def _rms_total(self, fit: Fit) -> float:
-        return _rms(self.obs, fit, self.sigma)
+        return fit.rms(self.obs, self.sigma)
 
     def closest(self, k: int = 2) -> list:
         """The candidates that came closest to explaining the misfit (first round)."""
@@ -225,50 +220,6 @@ def _plain(d: dict) -> dict:
     return {str(k): float(v) for k, v in d.items()}
 
 
-@dataclass(frozen=True)
-class _Internal:
-    """An item of shared work that failed for a reason other than the model (picklable)."""
-
-    why: str
-
-
-def _share_with(comm, sim=None, errors: list | None = None):
-    def attempt(work, item):
-        try:
-            return work(item)
-        except Exception as exc:  # noqa: BLE001 - the work catches the model's failures
-            log.error("internal error, an item of the diagnosis left out: %s: %s",
-                      type(exc).__name__, exc)
-            return _Internal(f"{type(exc).__name__}: {exc}")
-
-    def share(items, work, cost):
-        """``work`` on the ``items``, most expensive first (by the estimated ``cost``),
-        each taken by whichever rank of ``comm`` is free; every rank gets every result,
-        in the order of ``items``.  A lone item (a round with one candidate left) is
-        worked on by all ranks together, each solving its share of ``sim``'s curves
-        (every solve starts afresh, so the result is the same as on one rank).  An item
-        whose work raises (an internal error: ``work`` catches the model's own failures)
-        gives None, and ``errors`` gets why, on every rank alike."""
-        order = sorted(range(len(items)), key=lambda i: -cost(items[i]))
-        if comm is None or comm.size == 1:
-            done = [(i, attempt(work, items[i])) for i in order]
-        elif len(items) == 1:
-            with _sharing(sim, comm):
-                done = [(0, attempt(work, items[0]))]
-        else:
-            counter = SharedCounter(comm)
-            with rank_local():  # this rank's own items: its warnings are said
-                done = [(i, attempt(work, items[i])) for i in dynamic_items(order, counter)]
-            counter.free()
-            done = [x for part in comm.allgather(done) for x in part]
-        out = [r for _, r in sorted(done, key=lambda x: x[0])]
-        if errors is not None:
-            errors.extend(dict.fromkeys(r.why for r in out if isinstance(r, _Internal)
-                                        and r.why not in errors))
-        return [None if isinstance(r, _Internal) else r for r in out]
-    return share
-
-
 def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: float = ALPHA,
              bic_margin: float = BIC_MARGIN, max_nfev: int = 15, comm=None, progress=None,
              noise: dict | None = None, max_effects: int = MAX_EFFECTS) -> Diagnosis:
@@ -279,7 +230,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     t0 = time.perf_counter()
     obs = obs.reset_index(drop=True)
     check_effects(effects, sim.kind)
-    with _sharing(sim, comm), _sharing(fine_sim, comm):  # the ranks share every curve
+    with sharing(sim, comm), sharing(fine_sim, comm):  # the ranks share every curve
         base, weights, disc, J_base = _base(sim, fine_sim, obs, noise)
     timings = {"base_fit_and_correction": round(time.perf_counter() - t0, 2), "rounds": []}
     if progress:
@@ -287,7 +238,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     lib = library(sim.kind)
     errors: list = []  # internal errors (not the model's failures) met on any rank
     ctx = Context(sim, obs, weights, lib, list(BASE_NAMES), alpha, bic_margin, max_nfev,
-                  _share_with(comm, sim, errors), noise, errors)
+                  share_with(comm, sim, errors), noise, errors)
     rounds, current, chosen, J = [], base, [], J_base
     ambiguous, notes = [], []
     while len(chosen) < max_effects:
@@ -321,7 +272,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                      - sig[0]["delta_bic"], "separating_test": separating_test(
                          added, r["effect"])} for r in sig[1:]
                     if r["delta_bic"] - sig[0]["delta_bic"] < bic_margin]
-            with _sharing(sim, comm):  # one fit at a time: the ranks share its curves
+            with sharing(sim, comm):  # one fit at a time: the ranks share its curves
                 new = _completed(ctx, rnd.fits[added], [*chosen, added])
                 rnd.added = added
                 chosen = [*chosen, added]
@@ -339,7 +290,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
             entry["whole_round"] = round(time.perf_counter() - t_round, 2)
     t_end = time.perf_counter()
     final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
-    located = loc.locate(obs, final_noise.whiten(_residual(obs, base)), 1.0,
+    located = loc.locate(obs, final_noise.whiten(base.residual(obs)), 1.0,
                           sigma_dof=final_noise.dof)
     in_model = list(chosen)  # the effects of ``current``, named or not
     (status, chosen, tried), (rms_base, rms_final) = _status_under(
@@ -357,7 +308,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                         "it, so none is named" if trend else ""))
     drift = {}
     if trend:  # the physics the library left out, modelled: does it take the misfit?
-        with _sharing(sim, comm):
+        with sharing(sim, comm):
             drift = drift_model(sim, obs, base, sd)
         if drift and drift["rms_after"] < rms_final:
             notes.append(f"modelled: the base model with its stiffness drifting during the "
@@ -370,7 +321,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
             notes.append("a stiffness drifting during the session does not explain the trend "
                          f"either: fitted, it leaves RMS {drift['rms_after']:.2f} (the "
                          f"library's best model: {rms_final:.2f})")
-    doubt = _cannot_tell(status, rem, final_noise, noise)
+    doubt = wander_doubt(status, rem, final_noise, noise)
     undetermined, rivals = noise_doubt(rounds, status, chosen, _rival_outcome(
         obs, base, current, in_model, final_noise, alpha, bic_margin))
     doubt = "; ".join(filter(None, [doubt, undetermined]))
@@ -469,24 +420,6 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
     return limits, masked
 
 
-def _cannot_tell(status: str, rem: dict, nm: NoiseModel, stated: dict | None) -> str:
-    """Why a verdict of no (further) systematic misfit cannot be trusted, or ''."""
-    if status not in ("none", "explained") or rem["reproducible"]["repeats"] != "none" \
-            or not stated:
-        return ""
-    loud = []
-    for k, v in nm.describe().items():
-        sd = stated.get(k.rsplit("/", 1)[1])
-        if sd is not None and v["slow_sd"] > WANDER_FACTOR * sd:
-            loud.append((k, v["slow_sd"], sd))
-    if not loud:
-        return ""
-    k, slow, sd = max(loud, key=lambda x: x[1] / x[2])
-    return (f"without a repeated ramp, the residual of {k} passes as noise only with a "
-            f"wander and drift of SD {slow:.3g}, {slow / sd:.0f} times the stated "
-            f"instrument noise {sd:.3g}: a smooth misfit and wander cannot be told apart here")
-
-
 def decide(chosen: list, systematic: bool, rms_before: float, rms_after: float, *,
            trend: bool = False) -> tuple[str, list, list]:
     """Status, named effects and merely tried effects of a diagnosis from the effects
@@ -512,79 +445,9 @@ def _status_under(obs, base: Fit, current: Fit, in_model: list, nm: NoiseModel,
     noise model ``nm`` and what it leaves (``rem``), with the RMS misfits of the base
     and the final model in ``nm``'s SDs."""
     sd = nm.sd()
-    rms_base, rms_final = _rms(obs, base, sd), _rms(obs, current, sd)
+    rms_base, rms_final = base.rms(obs, sd), current.rms(obs, sd)
     return (decide(in_model, rem["systematic"], rms_base, rms_final,
                    trend=rem["trend"]["significant"]), (rms_base, rms_final))
-
-
-def _rms(obs, f: Fit, sd: np.ndarray, rows=slice(None)) -> float:
-    """RMS of ``f``'s residual in units of ``sd`` (per row), over ``rows``."""
-    return float(np.sqrt(np.mean((_residual(obs, f)[rows] / sd[rows]) ** 2)))
-
-
-def edge_notes(base: Fit, final: Fit) -> list[str]:
-    """A note per fit (base, final) that met trial points the model could not solve: its
-    trust region shrank there, so a tolerance may have ended it at the edge of what the
-    model can follow instead of at the optimum (measured: a fungi double compression to
-    50 % ends 90 standard errors away when its recordings change in their last digits)."""
-    fits = [("base", base)] + ([("final", final)] if final is not base else [])
-    return [f"the {label} fit met {f.refused} trial point(s) the model could not solve (of "
-            f"{f.nfev} evaluations): it may have stopped at the edge of what the model can "
-            "follow rather than at the optimum, and its parameters and standard errors are "
-            "then not determined by the recordings" for label, f in fits if f.refused]
-
-
-def contact_notes(obs, base: Fit, final: Fit, sd: np.ndarray,
-                  lift_off: bool = False) -> list[str]:
-    """What the points recorded off the specimen (``in_contact`` = 0: after a lift-off,
-    before a re-contact) do to the misfit.  ``lift_off``: the model lets the top plate lift
-    off (unglued ends); otherwise it keeps the ends glued and cannot follow them."""
-    if "in_contact" not in obs or obs["in_contact"].all():
-        return []
-    off = obs["in_contact"].to_numpy() == 0
-    model = ("the model lets the top plate lift off where it would pull (unglued ends)"
-             if lift_off else "the model keeps both ends glued and cannot follow them "
-             "(no lift-off end condition; ends = unglued in the specimens table has one)")
-    return [f"{int(off.sum())} of {off.size} points were recorded with the plate off the "
-            "specimen (lift-off on unloading, before the re-contact on reloading: "
-            f"in_contact = 0); {model}: RMS misfit / noise on them "
-            f"{_rms(obs, base, sd, off):.2f} (base) -> {_rms(obs, final, sd, off):.2f}, on "
-            f"the points in contact {_rms(obs, base, sd, ~off):.2f} -> "
-            f"{_rms(obs, final, sd, ~off):.2f}"]
-
-
-def recorded_events(obs) -> dict[str, list[tuple[str, int, float]]]:
-    """Per curve, the (kind, cycle, control) of each change of ``in_contact`` in the
-    recorded order (lift-off at the first point off the specimen, re-contact at the first
-    one back on it)."""
-    out = {}
-    for curve, g in obs.groupby("curve", sort=False):
-        g = g[g.channel == g.channel.iloc[0]]
-        on = g["in_contact"].to_numpy() != 0
-        out[str(curve)] = [("lift-off" if on[i - 1] else "re-contact", int(g.cycle.iloc[i]),
-                            float(g.control.iloc[i]))
-                           for i in range(1, len(on)) if on[i] != on[i - 1]]
-    return out
-
-
-def contact_event_notes(obs, sim, final: Fit) -> list[str]:
-    """Where the final model lets go of the specimen and meets it again, beside where the
-    recordings say (unglued ends); one note per curve with contact events."""
-    def fmt(events):
-        return ", ".join(f"{k} in cycle {c} at {x:.3f}" for k, c, x in events) or "none"
-
-    try:
-        predicted = sim.contact_events(final.values)
-    except (RuntimeError, ValueError) as exc:  # the note is not worth a failed diagnosis
-        log.warning("contact events of the final model: %s", exc)
-        return []
-    notes = []
-    for curve, rec in recorded_events(obs).items():
-        model = [(e.kind, e.cycle, e.control) for e in predicted.get(curve, [])]
-        if rec or model:
-            notes.append(f"{curve}: the final model {fmt(model)}; recorded {fmt(rec)} "
-                         "(stretch)")
-    return notes
 
 
 def _what_remains(obs, current: Fit, stated, alpha, bic_margin):
@@ -595,7 +458,7 @@ def _what_remains(obs, current: Fit, stated, alpha, bic_margin):
 
 def _remains_under(obs, current: Fit, nm: NoiseModel, alpha, bic_margin) -> dict:
     """What ``current`` leaves systematic under the noise model ``nm``."""
-    return remaining(obs, _residual(obs, current), nm, alpha=alpha, bic_margin=bic_margin,
+    return remaining(obs, current.residual(obs), nm, alpha=alpha, bic_margin=bic_margin,
                      prediction=current.prediction)
 
 
@@ -609,11 +472,7 @@ def _noise_of(obs, f: Fit, stated) -> NoiseModel:
     B = systematic_basis(obs, f.prediction)
     if f.jacobian is not None and np.isfinite(f.jacobian).all():
         B = np.hstack([B, f.jacobian])
-    return fit_noise(obs, _residual(obs, f), stated=stated, systematic=B)
-
-
-def _residual(obs, f: Fit) -> np.ndarray:
-    return f.prediction - obs["value"].to_numpy(float)
+    return fit_noise(obs, f.residual(obs), stated=stated, systematic=B)
 
 
 def _jacobian(sim, comm, f: Fit, names: list) -> np.ndarray:
@@ -621,7 +480,7 @@ def _jacobian(sim, comm, f: Fit, names: list) -> np.ndarray:
     was taken with respect to the same parameters (no second solve along the path)."""
     if f.jacobian is not None and list(map(str, f.names)) == list(map(str, names)):
         return f.jacobian
-    with _sharing(sim, comm):
+    with sharing(sim, comm):
         return sim.predict(f.values, names).jacobian
 
 
@@ -672,42 +531,6 @@ def _rival_outcome(obs, base: Fit, current: Fit, in_model: list, nm: NoiseModel,
     rem = _remains_under(obs, current, rival, alpha, bic_margin)
     (status, named, _), _ = _status_under(obs, base, current, in_model, rival, rem)
     return {"series": nm.describe_rivals(), "status": status, "effects": sorted(named)}
-
-
-def noise_doubt(rounds: list, status: str, named: list, final: dict) -> tuple[str, list]:
-    """Where the noise the recordings leave undetermined decides: the cannot-tell text
-    ('' when every decision is the same under both noise models) and, per place with a
-    rival noise model, what it would decide (for diagnosis.json)."""
-    def series(d):
-        return "; ".join(f"{k}: slow SD {v['slow_sd']:.3g} or {v['rival_slow_sd']:.3g}, "
-                         f"{v['delta_m2logl']:.2g} apart in -2 log L" for k, v in d.items())
-
-    places, changes = [], []
-    for i, rnd in enumerate(rounds, 1):
-        r = rnd.noise_rival
-        if not r:
-            continue
-        places.append({"where": f"round {i}", **r})
-        if r["adds"] != r["rival_adds"]:
-            changes.append(f"round {i} would add {r['rival_adds'] or 'nothing'} instead of "
-                           f"{r['adds'] or 'nothing'} ({series(r['series'])})")
-        changes += [f"round {i}'s re-test would {'keep' if d['dropped'] else 'drop'} "
-                    f"{d['effect']} (LRT {d['rival_lrt']:.1f} against {d['lrt']:.1f}, "
-                    f"{d['needed']:.1f} needed; {series(r['series'])})"
-                    for d in r.get("retest", ())]
-    if final:
-        places.append({"where": "final", "series": final["series"], "status": status,
-                       "effects": sorted(named), "rival_status": final["status"],
-                       "rival_effects": final["effects"]})
-        if (final["status"], final["effects"]) != (status, sorted(named)):
-            changes.append(f"the final model would be {'+'.join(final['effects']) or '-'}, "
-                           f"{final['status']} instead of {'+'.join(sorted(named)) or '-'}, "
-                           f"{status} ({series(final['series'])})")
-    if not changes:
-        return "", places
-    return ("the recordings leave the slow part of the noise undetermined (two noise "
-            "models neither of which they rule out), and the answer depends on which: "
-            + "; ".join(changes)), places
 
 
 def _complete_contenders(ctx: Context, rnd, chosen: list, sig: list) -> list:
@@ -811,13 +634,3 @@ def _base(sim, fine_sim, obs, stated):
             np.sqrt(np.mean(rel**2))))
     return base, sigma, disc, base.jacobian
 
-
-@contextlib.contextmanager
-def _sharing(sim, comm):
-    """Let the ranks of ``comm`` share the curves of ``sim``'s predictions, where the
-    simulator can (the FE model); otherwise every rank computes everything."""
-    if sim is None or not hasattr(sim, "sharing"):
-        yield sim
-        return
-    with sim.sharing(comm):
-        yield sim

@@ -87,6 +87,14 @@ class Fit:
     def aic(self) -> float:
         return self.chi2 + 2 * self.k
 
+    def residual(self, obs: pd.DataFrame) -> np.ndarray:
+        """Prediction minus recording, per row of ``obs``."""
+        return self.prediction - obs["value"].to_numpy(float)
+
+    def rms(self, obs: pd.DataFrame, sd: np.ndarray, rows=slice(None)) -> float:
+        """RMS of the residual in units of ``sd`` (per row), over ``rows``."""
+        return float(np.sqrt(np.mean((self.residual(obs)[rows] / sd[rows]) ** 2)))
+
 
 def _bounds(names, effect=None):
     lo, hi = [], []

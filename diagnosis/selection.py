@@ -44,7 +44,7 @@ EXCLUSIVE = {frozenset({"artefacts", "glued_ends"})}
 # A candidate's model failing to follow the data (Newton, the linear solver, a refused
 # start, a protocol the model cannot express): the candidate is left out of the round.
 # Anything else (a timeout, an OSError, a bug) is an internal error: it escapes to the
-# work sharing (engine._share_with), which leaves the item out too but records it, and the
+# work sharing (sharing.share_with), which leaves the item out too but records it, and the
 # diagnosis says it is incomplete
 MODEL_FAILURES = (RuntimeError, ValueError, ArithmeticError, np.linalg.LinAlgError)
 ALPHA = 1e-3  # significance level of an effect (Bonferroni over the round's candidates)

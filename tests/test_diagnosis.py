@@ -237,8 +237,8 @@ def test_a_fit_against_what_the_model_can_solve_says_so():
 
     from brain_fe.solver import ConvergenceError
     from diagnosis.effects import BASE_NAMES
-    from diagnosis.engine import edge_notes
     from diagnosis.fitting import fit
+    from diagnosis.notes import edge_notes
     from simulators.base import Prediction
 
     x = np.linspace(0.1, 1.0, 12)
@@ -270,12 +270,12 @@ def test_a_fit_against_what_the_model_can_solve_says_so():
 
 
 def test_a_decision_that_follows_an_undetermined_noise_is_cannot_tell():
-    """diagnosis.engine.noise_doubt: a round that adds another effect under the rival noise
+    """diagnosis.notes.noise_doubt: a round that adds another effect under the rival noise
     model, or a final status that differs, makes the answer *cannot tell* with both; the
     same decisions under both give no doubt, only the places (diagnosis.json)."""
     from types import SimpleNamespace
 
-    from diagnosis.engine import noise_doubt
+    from diagnosis.notes import noise_doubt
 
     series = {"torsion_0.10/torque": {"delta_m2logl": 0.012, "slow_sd": 0.15,
                                       "rival_slow_sd": 6.3}}

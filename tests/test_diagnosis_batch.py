@@ -140,17 +140,18 @@ def test_a_finer_mesh_that_cannot_follow_leaves_the_model_uncorrected_and_says_s
 def test_points_off_the_specimen_are_reported_apart():
     """The misfit on the points recorded after a lift-off is stated apart from the rest
     (unit noise: the RMS is the plain RMS of the residual)."""
-    from types import SimpleNamespace
-
     import numpy as np
     import pandas as pd
 
-    from diagnosis.engine import contact_notes
+    from diagnosis.fitting import Fit
+    from diagnosis.notes import contact_notes
+
+    def fit(prediction):
+        return Fit("", [], {}, 0.0, 6, prediction, prediction, 0)
 
     obs = pd.DataFrame({"value": np.zeros(6), "in_contact": [1, 1, 1, 1, 0, 0]})
-    fit = SimpleNamespace
-    base = fit(prediction=np.array([1.0, -1, 1, -1, 4, 4]))
-    final = fit(prediction=np.array([0.5, -0.5, 0.5, -0.5, 3, 3]))
+    base = fit(np.array([1.0, -1, 1, -1, 4, 4]))
+    final = fit(np.array([0.5, -0.5, 0.5, -0.5, 3, 3]))
     (note,) = contact_notes(obs, base, final, np.ones(6))
     assert note.startswith("2 of 6 points") and "on them 4.00 (base) -> 3.00" in note
     assert "in contact 1.00 -> 0.50" in note
@@ -165,7 +166,7 @@ def test_the_model_s_lift_off_is_set_beside_the_recorded_one():
     import pandas as pd
 
     from brain_fe.contact import ContactEvent
-    from diagnosis.engine import contact_event_notes, recorded_events
+    from diagnosis.notes import contact_event_notes, recorded_events
 
     obs = pd.DataFrame({"curve": "ct", "channel": "stress", "cycle": [1, 1, 1, 2, 2, 2],
                         "control": [0.6, 0.7, 0.8, 0.9, 0.75, 0.6],

@@ -184,7 +184,7 @@ def test_effects_beside_a_stiffness_trend_are_not_named():
         assert decide(chosen, True, before, after, trend=True) == ("unexplained", [], chosen)
 
 
-def test_wander_far_above_the_stated_noise_is_a_cannot_tell():
+def test_wander_far_above_the_stated_noise_is_awander_doubt():
     """A single loading ramp of a real torsion (fungi shear 1): its residual passed as noise
     only with a wander of SD 3.08 mN mm against the instrument's 0.074: `cannot tell`,
     not `nothing to explain`; with repeated ramps, or a wander within 5 times the stated
@@ -193,17 +193,17 @@ def test_wander_far_above_the_stated_noise_is_a_cannot_tell():
     wander 1.13 from one start; wander 0.138 and a drift of 0.0017/s from the better one)."""
     from types import SimpleNamespace
 
-    from diagnosis.engine import _cannot_tell
+    from diagnosis.notes import wander_doubt
 
     nm = SimpleNamespace(describe=lambda: {"torsion_0.10/torque": {"slow_sd": 3.08}})
     single = {"reproducible": {"repeats": "none"}}
-    doubt = _cannot_tell("none", single, nm, {"torque": 0.074})
+    doubt = wander_doubt("none", single, nm, {"torque": 0.074})
     assert "42 times the stated instrument noise" in doubt
-    assert _cannot_tell("none", {"reproducible": {"repeats": "cycles"}}, nm,
+    assert wander_doubt("none", {"reproducible": {"repeats": "cycles"}}, nm,
                         {"torque": 0.074}) == ""
-    assert _cannot_tell("none", single, nm, {"torque": 0.7}) == ""
-    assert _cannot_tell("none", single, nm, None) == ""
-    assert _cannot_tell("unexplained", single, nm, {"torque": 0.074}) == ""
+    assert wander_doubt("none", single, nm, {"torque": 0.7}) == ""
+    assert wander_doubt("none", single, nm, None) == ""
+    assert wander_doubt("unexplained", single, nm, {"torque": 0.074}) == ""
 
 
 def test_an_internal_error_leaves_the_item_out_and_is_said():
@@ -216,11 +216,12 @@ def test_an_internal_error_leaves_the_item_out_and_is_said():
     import pandas as pd
 
     from brain_fe.solver import ConvergenceError
-    from diagnosis.engine import _share_with, diagnose
+    from diagnosis.engine import diagnose
+    from diagnosis.sharing import share_with
     from simulators.homogeneous import HomogeneousSimulator
 
     errors: list = []
-    share = _share_with(None, None, errors)
+    share = share_with(None, None, errors)
 
     def work(x):
         if x == 2:
@@ -418,7 +419,7 @@ def test_the_effect_just_added_is_re_tested_from_the_joint_fit(monkeypatch):
 
     # under a rival noise model the recordings do not rule out, the slow part of the
     # noise weighs the refit's misfit otherwise: nu0 would stay (LRT 50.4 > about 15), so
-    # that decision is reported as one the noise decides (engine.noise_doubt)
+    # that decision is reported as one the noise decides (notes.noise_doubt)
     rival = object()
     noise = SimpleNamespace(rival=lambda: rival)
     ctx.chi2 = lambda nm, f: f.chi2 + (50.0 if nm is rival and f is not joint else 0.0)
@@ -496,7 +497,6 @@ def test_a_drifting_stiffness_is_modelled_with_a_rate_and_a_level_per_test():
     import pandas as pd
 
     from diagnosis.drift import drift_model
-    from diagnosis.engine import _rms
     from diagnosis.fitting import fit
     from simulators.homogeneous import HomogeneousSimulator
 
@@ -519,7 +519,7 @@ def test_a_drifting_stiffness_is_modelled_with_a_rate_and_a_level_per_test():
         1.0 - 0.12 * (t - t.mean()) / np.ptp(t), np.full(8, 0.9)]
     sd = np.full(len(obs), 0.01)
     base = fit(sim, obs, sd, truth, ["mu_0", "alpha_0"])
-    assert _rms(obs, base, sd) > 3.0  # the drift is far above the noise
+    assert base.rms(obs, sd) > 3.0  # the drift is far above the noise
     out = drift_model(sim, obs, base, sd)
     assert out["span_s"] == pytest.approx(94.0)
     assert out["change"] == pytest.approx(-0.12, abs=1e-6)

@@ -310,8 +310,9 @@ def test_limits_survive_a_history_that_cannot_be_followed(caplog):
     import pandas as pd
 
     from diagnosis.effects import EFFECTS
-    from diagnosis.engine import _limits, _share_with
+    from diagnosis.engine import _limits
     from diagnosis.selection import Context
+    from diagnosis.sharing import share_with
 
     n = 40
     x = np.linspace(0.0, 1.0, n)
@@ -341,7 +342,7 @@ def test_limits_survive_a_history_that_cannot_be_followed(caplog):
 
     def run(fail):
         sim = types.SimpleNamespace(nu0=0.49, predict=lambda v, q: predict(v, q, fail))
-        ctx = Context(sim, obs, np.ones(n), lib, [MU], 1e-3, 10.0, 40, _share_with(None))
+        ctx = Context(sim, obs, np.ones(n), lib, [MU], 1e-3, 10.0, 40, share_with(None))
         calls.clear()
         return _limits(ctx, None, current, [], [], x[:, None], nm, None)
 

@@ -1,0 +1,144 @@
+"""What a diagnosis says beside its verdict: the notes and the reasons it cannot tell.
+
+* :func:`wander_doubt` and :func:`noise_doubt`: why a verdict cannot be trusted (a misfit
+  that passes as noise only with a wander far above the stated instrument noise; a
+  decision that depends on which of two noise models the recordings leave open);
+* :func:`edge_notes`: fits that stopped where the model could not be solved;
+* :func:`contact_notes`, :func:`contact_event_notes`: points recorded off the specimen,
+  and where the model lets go of it (lift-off) against where the recordings say.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .fitting import Fit
+from .noise import NoiseModel
+
+log = logging.getLogger(__name__)
+
+# Without a repeated ramp, wander and a smooth misfit cannot be told apart: when the noise
+# model needs a wander this many times the stated instrument noise to call the residual
+# noise, the diagnosis says it cannot tell instead of "nothing to explain"
+WANDER_FACTOR = 5.0
+
+
+def wander_doubt(status: str, rem: dict, nm: NoiseModel, stated: dict | None) -> str:
+    """Why a verdict of no (further) systematic misfit cannot be trusted, or ''."""
+    if status not in ("none", "explained") or rem["reproducible"]["repeats"] != "none" \
+            or not stated:
+        return ""
+    loud = []
+    for k, v in nm.describe().items():
+        sd = stated.get(k.rsplit("/", 1)[1])
+        if sd is not None and v["slow_sd"] > WANDER_FACTOR * sd:
+            loud.append((k, v["slow_sd"], sd))
+    if not loud:
+        return ""
+    k, slow, sd = max(loud, key=lambda x: x[1] / x[2])
+    return (f"without a repeated ramp, the residual of {k} passes as noise only with a "
+            f"wander and drift of SD {slow:.3g}, {slow / sd:.0f} times the stated "
+            f"instrument noise {sd:.3g}: a smooth misfit and wander cannot be told apart here")
+
+
+def noise_doubt(rounds: list, status: str, named: list, final: dict) -> tuple[str, list]:
+    """Where the noise the recordings leave undetermined decides: the cannot-tell text
+    ('' when every decision is the same under both noise models) and, per place with a
+    rival noise model, what it would decide (for diagnosis.json)."""
+    def series(d):
+        return "; ".join(f"{k}: slow SD {v['slow_sd']:.3g} or {v['rival_slow_sd']:.3g}, "
+                         f"{v['delta_m2logl']:.2g} apart in -2 log L" for k, v in d.items())
+
+    places, changes = [], []
+    for i, rnd in enumerate(rounds, 1):
+        r = rnd.noise_rival
+        if not r:
+            continue
+        places.append({"where": f"round {i}", **r})
+        if r["adds"] != r["rival_adds"]:
+            changes.append(f"round {i} would add {r['rival_adds'] or 'nothing'} instead of "
+                           f"{r['adds'] or 'nothing'} ({series(r['series'])})")
+        changes += [f"round {i}'s re-test would {'keep' if d['dropped'] else 'drop'} "
+                    f"{d['effect']} (LRT {d['rival_lrt']:.1f} against {d['lrt']:.1f}, "
+                    f"{d['needed']:.1f} needed; {series(r['series'])})"
+                    for d in r.get("retest", ())]
+    if final:
+        places.append({"where": "final", "series": final["series"], "status": status,
+                       "effects": sorted(named), "rival_status": final["status"],
+                       "rival_effects": final["effects"]})
+        if (final["status"], final["effects"]) != (status, sorted(named)):
+            changes.append(f"the final model would be {'+'.join(final['effects']) or '-'}, "
+                           f"{final['status']} instead of {'+'.join(sorted(named)) or '-'}, "
+                           f"{status} ({series(final['series'])})")
+    if not changes:
+        return "", places
+    return ("the recordings leave the slow part of the noise undetermined (two noise "
+            "models neither of which they rule out), and the answer depends on which: "
+            + "; ".join(changes)), places
+
+
+def edge_notes(base: Fit, final: Fit) -> list[str]:
+    """A note per fit (base, final) that met trial points the model could not solve: its
+    trust region shrank there, so a tolerance may have ended it at the edge of what the
+    model can follow instead of at the optimum (measured: a fungi double compression to
+    50 % ends 90 standard errors away when its recordings change in their last digits)."""
+    fits = [("base", base)] + ([("final", final)] if final is not base else [])
+    return [f"the {label} fit met {f.refused} trial point(s) the model could not solve (of "
+            f"{f.nfev} evaluations): it may have stopped at the edge of what the model can "
+            "follow rather than at the optimum, and its parameters and standard errors are "
+            "then not determined by the recordings" for label, f in fits if f.refused]
+
+
+def contact_notes(obs, base: Fit, final: Fit, sd: np.ndarray,
+                  lift_off: bool = False) -> list[str]:
+    """What the points recorded off the specimen (``in_contact`` = 0: after a lift-off,
+    before a re-contact) do to the misfit.  ``lift_off``: the model lets the top plate lift
+    off (unglued ends); otherwise it keeps the ends glued and cannot follow them."""
+    if "in_contact" not in obs or obs["in_contact"].all():
+        return []
+    off = obs["in_contact"].to_numpy() == 0
+    model = ("the model lets the top plate lift off where it would pull (unglued ends)"
+             if lift_off else "the model keeps both ends glued and cannot follow them "
+             "(no lift-off end condition; ends = unglued in the specimens table has one)")
+    return [f"{int(off.sum())} of {off.size} points were recorded with the plate off the "
+            "specimen (lift-off on unloading, before the re-contact on reloading: "
+            f"in_contact = 0); {model}: RMS misfit / noise on them "
+            f"{base.rms(obs, sd, off):.2f} (base) -> {final.rms(obs, sd, off):.2f}, on "
+            f"the points in contact {base.rms(obs, sd, ~off):.2f} -> "
+            f"{final.rms(obs, sd, ~off):.2f}"]
+
+
+def recorded_events(obs) -> dict[str, list[tuple[str, int, float]]]:
+    """Per curve, the (kind, cycle, control) of each change of ``in_contact`` in the
+    recorded order (lift-off at the first point off the specimen, re-contact at the first
+    one back on it)."""
+    out = {}
+    for curve, g in obs.groupby("curve", sort=False):
+        g = g[g.channel == g.channel.iloc[0]]
+        on = g["in_contact"].to_numpy() != 0
+        out[str(curve)] = [("lift-off" if on[i - 1] else "re-contact", int(g.cycle.iloc[i]),
+                            float(g.control.iloc[i]))
+                           for i in range(1, len(on)) if on[i] != on[i - 1]]
+    return out
+
+
+def contact_event_notes(obs, sim, final: Fit) -> list[str]:
+    """Where the final model lets go of the specimen and meets it again, beside where the
+    recordings say (unglued ends); one note per curve with contact events."""
+    def fmt(events):
+        return ", ".join(f"{k} in cycle {c} at {x:.3f}" for k, c, x in events) or "none"
+
+    try:
+        predicted = sim.contact_events(final.values)
+    except (RuntimeError, ValueError) as exc:  # the note is not worth a failed diagnosis
+        log.warning("contact events of the final model: %s", exc)
+        return []
+    notes = []
+    for curve, rec in recorded_events(obs).items():
+        model = [(e.kind, e.cycle, e.control) for e in predicted.get(curve, [])]
+        if rec or model:
+            notes.append(f"{curve}: the final model {fmt(model)}; recorded {fmt(rec)} "
+                         "(stretch)")
+    return notes
