@@ -623,7 +623,7 @@ def _base(sim, fine_sim, obs, stated):
         sim.correction = factor * (y_fine - y_coarse)
         disc = {"corrected": True, "refinement": sim.refinement,
                 "reference_refinement": fine_sim.refinement, "richardson_factor": factor}
-    sigma = estimate_noise(obs, base.prediction - obs["value"].to_numpy(float))
+    sigma = estimate_noise(obs, base.residual(obs))
     if stated:
         sigma = np.array([stated.get(c, s) for c, s in zip(obs["channel"], sigma,
                                                              strict=True)], dtype=float)

@@ -59,7 +59,7 @@ def _segments(rows, limit=12) -> list[str]:
 
 def _write(d, out: Path, title: str) -> dict:
     res = d.to_json()
-    r = d.base.prediction - d.obs["value"].to_numpy(float)
+    r = d.base.residual(d.obs)
     mismatch_map(d.obs, d.noise.whiten(r), np.ones(len(r)), d.located,
                  out / "mismatch_map.png")
     before_after(d, out / "before_after.png")

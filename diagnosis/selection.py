@@ -75,7 +75,7 @@ class Context:
     errors: list = field(default_factory=list)  # internal errors met (the same on every rank)
 
     def chi2(self, noise, f: Fit) -> float:
-        z = noise.whiten(f.prediction - self.obs["value"].to_numpy(float))
+        z = noise.whiten(f.residual(self.obs))
         return float(z @ z)
 
     def needed(self, k: int, m: int) -> float:
