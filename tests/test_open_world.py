@@ -184,7 +184,7 @@ def test_effects_beside_a_stiffness_trend_are_not_named():
         assert decide(chosen, True, before, after, trend=True) == ("unexplained", [], chosen)
 
 
-def test_wander_far_above_the_stated_noise_is_awander_doubt():
+def test_wander_far_above_the_stated_noise_is_a_cannot_tell():
     """A single loading ramp of a real torsion (fungi shear 1): its residual passed as noise
     only with a wander of SD 3.08 mN mm against the instrument's 0.074: `cannot tell`,
     not `nothing to explain`; with repeated ramps, or a wander within 5 times the stated
