@@ -155,9 +155,7 @@ def before_after(d, path) -> None:
         if d.effects:
             ax.plot(x, d.final.prediction[i], "-", color="tab:red", lw=1,
                     label=f"with {d.verdict}")
-        value, sd = g["value"].to_numpy(float), d.sigma[i]
-        rb = np.sqrt(np.mean(((d.base.prediction[i] - value) / sd) ** 2))
-        ra = np.sqrt(np.mean(((d.final.prediction[i] - value) / sd) ** 2))
+        rb, ra = d.base.rms(d.obs, d.sigma, i), d.final.rms(d.obs, d.sigma, i)
         ax.set_title(f"{curve} / {ch}\nRMS/noise {rb:.2f} -> {ra:.2f}", fontsize=9)
         ax.set_xlabel("stretch" if "compression" in curve or "tension" in curve
                       else "amount of shear")

@@ -147,7 +147,8 @@ def test_points_off_the_specimen_are_reported_apart():
     from diagnosis.notes import contact_notes
 
     def fit(prediction):
-        return Fit("", [], {}, 0.0, 6, prediction, prediction, 0)
+        return Fit(effect="", names=[], values={}, chi2=0.0, n=6, prediction=prediction,
+                   z=np.zeros(6), nfev=0)
 
     obs = pd.DataFrame({"value": np.zeros(6), "in_contact": [1, 1, 1, 1, 0, 0]})
     base = fit(np.array([1.0, -1, 1, -1, 4, 4]))
