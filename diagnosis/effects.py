@@ -16,6 +16,7 @@ are fitted in the transformed coordinates given here (log10 for scales spanning 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from brain_fe.parameters import Param
@@ -37,44 +38,62 @@ class Effect:
     description: str
     signature: str  # what it looks like in data (for the report)
     kinds: tuple[str, ...] = field(default=("fe", "homogeneous"))
+    # where it *is* the base model (the table above), for the parameters that act there:
+    # None for the assumed nu0, +-inf for a limit (a glue layer infinitely stiff); the
+    # others (log10 tau_0, ...) act only through these
+    neutral: dict = field(default_factory=dict)
 
     def __post_init__(self):
         object.__setattr__(self, "names", tuple(Param.parse(n) for n in self.names))
         object.__setattr__(self, "starts", tuple({Param.parse(k): v for k, v in s.items()}
                                                  for s in self.starts))
+        object.__setattr__(self, "neutral", {Param.parse(k): v
+                                             for k, v in self.neutral.items()})
 
     def bounds(self, name: Param) -> tuple[float, float]:
         i = self.names.index(name)
         return self.lower[i], self.upper[i]
+
+    def of_finite_size(self, point: dict, nu0: float) -> bool:
+        """Whether ``point`` ({name: value}) sets a parameter away from its neutral value
+        (``nu0``: the assumed value), so that its model differs from the base model; False
+        when the effect states no neutral value (nothing is assumed)."""
+        values = {Param.parse(k): float(v) for k, v in point.items()}
+        return any(n in values and values[n] != (nu0 if v is None else v)
+                   for n, v in self.neutral.items())
 
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("viscoelastic", ("beta_0", "log10_tau_0"), (0.0, -1.0), (5.0, 3.0),
            ({"beta_0": 0.3, "log10_tau_0": 0.5}, {"beta_0": 0.3, "log10_tau_0": 1.7}),
            "finite-strain viscoelasticity (one Maxwell branch on the isochoric stress)",
-           "hysteresis between loading and unloading, rate dependence", kinds=("fe",)),
+           "hysteresis between loading and unloading, rate dependence", kinds=("fe",),
+           neutral={"beta_0": 0.0}),
     Effect("mullins", ("softening", "log10_softening_m"), (0.0, -4.0), (0.95, 1.0),
            ({"softening": 0.3, "log10_softening_m": -1.5},
             {"softening": 0.3, "log10_softening_m": -0.5}),
            "Ogden-Roxburgh preconditioning softening",
-           "unloading below loading, first cycle stiffer than the next", kinds=("fe",)),
+           "unloading below loading, first cycle stiffer than the next", kinds=("fe",),
+           neutral={"softening": 0.0}),
     Effect("ogden_2term", ("mu_1", "alpha_1"), (0.0, -40.0), (5.0, 40.0),
            ({"mu_1": 0.05, "alpha_1": 10.0}, {"mu_1": 0.05, "alpha_1": -10.0}),
            "second Ogden term",
-           "tension/compression asymmetry and torsion shape beyond one term"),
+           "tension/compression asymmetry and torsion shape beyond one term",
+           neutral={"mu_1": 0.0}),
     Effect("compressibility", ("nu0",), (0.2,), (0.4999,), ({"nu0": 0.45},),
            "compressibility as a free parameter (nu0)",
-           "axial force in torsion, stiffening by the glued ends"),
+           "axial force in torsion, stiffening by the glued ends", neutral={"nu0": None}),
     Effect("imperfect_gluing", ("log10_k",), (-1.0, ), (4.0,),
            ({"log10_k": 0.5}, {"log10_k": 1.5}),
            "compliant glue layer (tangential interface springs)",
            "softer torsion and compression than glued, strongest at small strain",
-           kinds=("fe",)),
+           kinds=("fe",), neutral={"log10_k": math.inf}),
     Effect("artefacts", ("stretch_offset", "force_offset", "torque_offset"),
            (-0.05, -50.0, -50.0), (0.05, 50.0, 50.0),
            ({"stretch_offset": 0.0, "force_offset": 0.0, "torque_offset": 0.0},),
            "test artefacts: contact-point zero offset and load-cell offsets",
-           "curves shifted along the stretch axis or offset at zero deformation"),
+           "curves shifted along the stretch axis or offset at zero deformation",
+           neutral=dict.fromkeys(("stretch_offset", "force_offset", "torque_offset"), 0.0)),
 )}
 # A test that would separate two explanations the given tests cannot tell apart
 LATERAL = ("lateral expansion (or volume) measured in compression: only compressibility "
@@ -105,7 +124,8 @@ HOMOGENEOUS_ARTEFACTS = Effect(
     "artefacts", ("stretch_offset", "stress_offset", "shear_offset"),
     (-0.05, -1.0, -1.0), (0.05, 1.0, 1.0),
     ({"stretch_offset": 0.0, "stress_offset": 0.0, "shear_offset": 0.0},),
-    EFFECTS["artefacts"].description, EFFECTS["artefacts"].signature)
+    EFFECTS["artefacts"].description, EFFECTS["artefacts"].signature,
+    neutral=dict.fromkeys(("stretch_offset", "stress_offset", "shear_offset"), 0.0))
 
 
 # Glued cube reduced as if homogeneous (diagnosis.glued_cube): the end constraint, from a
@@ -115,7 +135,7 @@ GLUED_ENDS = Effect(
     "glued ends of a specimen reduced as if homogeneous (inhomogeneous uniaxial deformation; "
     "interface springs of stiffness k)",
     "compression stiffer than tension predicts, small-strain stiffening of both, shear "
-    "unaffected", kinds=("cube",))
+    "unaffected", kinds=("cube",), neutral={"log10_k": -math.inf})
 SEPARATING_TEST.update({
     frozenset({"glued_ends", "ogden_2term"}): "a lubricated (slip-end) compression test or a "
     "second specimen aspect ratio: the end constraint depends on the shape, the material "

@@ -125,13 +125,18 @@ def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dic
     data = obs["value"].to_numpy(float)
     z_cur = (current.prediction - data) / sigma
     t0 = time.perf_counter()
-    pred = sim.predict(values, scored)
+    # a point of finite size (a glue layer, a lower nu0) needs its own Jacobian: predicted
+    # with it at once (a prediction and its columns do not depend on the other columns asked)
+    own = effect.of_finite_size(pt, sim.nu0)
+    pred = sim.predict(values, names if own else scored)
     z = (pred.y - data) / sigma
     neutral = float(np.max(np.abs(z - z_cur))) < 1e-6
     if neutral:
-        J = np.column_stack([base_jacobian, pred.jacobian]) / sigma[:, None]
+        cols = pred.jacobian[:, len(base_names):] if own else pred.jacobian
+        J = np.column_stack([base_jacobian, cols]) / sigma[:, None]
     else:
-        pred = sim.predict(values, names)
+        if not own:
+            pred = sim.predict(values, names)
         J = pred.jacobian / sigma[:, None]
     seconds = time.perf_counter() - t0
     nb = len(base_names)

@@ -8,18 +8,14 @@ import numpy as np
 import pytest
 
 from brain_fe.parameters import Param
+from diagnosis.effects import Effect
 from diagnosis.screen import MAX_STEP_OF_RANGE, score
 
 MU, EFF = Param("mu", 0), Param("beta", 0)
 
 
-class _Effect:
-    name = "linear"
-    names = [EFF]
-
-    @staticmethod
-    def bounds(_name):
-        return 0.0, 1.0
+_Effect = Effect("linear", ("beta_0",), (0.0,), (1.0,), ({"beta_0": 0.0},), "", "",
+                 neutral={"beta_0": 0.0})
 
 
 def _problem(effect_size: float):
@@ -34,7 +30,7 @@ def _problem(effect_size: float):
         jac = np.column_stack([cols[n] for n in names]) if names else np.zeros((x.size, 0))
         return types.SimpleNamespace(y=y, jacobian=jac)
 
-    sim = types.SimpleNamespace(predict=predict)
+    sim = types.SimpleNamespace(predict=predict, nu0=0.49)
     obs = {"value": data}
     current = types.SimpleNamespace(values={MU: 1.0, EFF: 0.0},
                                     prediction=predict({MU: 1.0, EFF: 0.0}, []).y)
@@ -64,6 +60,57 @@ def test_score_start_holds_a_long_step_and_solves_the_base_without_it():
     # mu takes the least-squares step of the base alone, not the joint one (mu = 2)
     mu_alone = float(np.linalg.lstsq(a[:, None], obs["value"], rcond=None)[0][0])
     assert abs(s.start[MU] - mu_alone) < 1e-10 and abs(mu_alone - 2.0) > 1.0
+
+
+def test_score_at_a_point_of_finite_size_predicts_once_and_scores_the_same():
+    """At a design point away from the neutral one (beta = 0.5 on y = mu a + beta b +
+    mu beta a b, whose Jacobian there is not the base one) the score asks for the point's
+    whole Jacobian in one prediction; the statistic and the start are exactly those of the
+    two predictions (the effect's columns, then all) made where the neutral is unknown."""
+    x = np.linspace(0.0, 1.0, 40)
+    a, b = x, x**2
+    data = 2.0 * a + 0.3 * b + 0.6 * a * b
+    calls = []
+
+    def predict(values, names):
+        calls.append(list(names))
+        mu, beta = values[MU], values[EFF]
+        cols = {MU: a + beta * a * b, EFF: b + mu * a * b}
+        jac = np.column_stack([cols[n] for n in names]) if names else np.zeros((x.size, 0))
+        return types.SimpleNamespace(y=mu * a + beta * b + mu * beta * a * b, jacobian=jac)
+
+    sim = types.SimpleNamespace(predict=predict, nu0=0.49)
+    current = types.SimpleNamespace(values={MU: 1.0, EFF: 0.0},
+                                    prediction=predict({MU: 1.0, EFF: 0.0}, []).y)
+    unknown = Effect("linear", ("beta_0",), (0.0,), (1.0,), ({"beta_0": 0.0},), "", "")
+    out = []
+    for eff in (_Effect, unknown):
+        calls.clear()
+        out.append((score(sim, _Obs({"value": data}), np.ones(40), current, eff,
+                          {"beta_0": 0.5}, [MU], a[:, None]), list(calls)))
+    (own, once), (two, twice) = out
+    assert once == [[MU, EFF]] and twice == [[EFF], [MU, EFF]]
+    assert own.lm == two.lm > 0 and own.start == two.start and own.dof == two.dof == 1
+    # at the neutral point both ask for the effect's column alone, and score alike
+    calls.clear()
+    neutral = score(sim, _Obs({"value": data}), np.ones(40), current, _Effect,
+                    {"beta_0": 0.0}, [MU], (a + 0.0)[:, None])
+    assert calls == [[EFF]] and neutral.lm > 0
+
+
+def test_effects_state_where_they_are_the_base_model():
+    """Every library effect states its neutral values; a design point is of finite size
+    exactly when it sets one of them elsewhere (nu0: the assumed value)."""
+    from diagnosis.effects import EFFECTS, GLUED_ENDS, HOMOGENEOUS_ARTEFACTS
+
+    for e in (*EFFECTS.values(), GLUED_ENDS, HOMOGENEOUS_ARTEFACTS):
+        assert e.neutral and set(e.neutral) <= set(e.names), e.name
+    ve, nu, glue = EFFECTS["viscoelastic"], EFFECTS["compressibility"], EFFECTS[
+        "imperfect_gluing"]
+    assert not ve.of_finite_size({"beta_0": 0.0, "log10_tau_0": 1.0}, 0.49)
+    assert ve.of_finite_size({"beta_0": 0.1, "log10_tau_0": 1.0}, 0.49)
+    assert not nu.of_finite_size({"nu0": 0.49}, 0.49) and nu.of_finite_size({"nu0": 0.4}, 0.49)
+    assert glue.of_finite_size({"log10_k": 4.0}, 0.49)  # neutral only at infinite stiffness
 
 
 def test_second_start_only_for_a_held_best_point():
