@@ -64,6 +64,7 @@ from .screen import (
     design,
     design_scales,
     detection_limits,
+    hidden_behind,
     masked_by_model,
 )
 from .selection import (
@@ -128,6 +129,10 @@ class Diagnosis:
     # base model with its stiffness drifting (a rate within tests, a level per test), fitted
     # jointly (:func:`diagnosis.drift.drift_model`)
     drift: dict = field(default_factory=dict)
+    # candidates a named effect hides: they would show beside the model without it, and
+    # beside it their parameter's variance is inflated HIDDEN_INFLATION times or more
+    # (:func:`diagnosis.screen.hidden_behind`)
+    hidden: list = field(default_factory=list)
 
     @property
     def verdict(self) -> str:
@@ -193,6 +198,7 @@ class Diagnosis:
             "ambiguous": self.ambiguous,
             "detection_limits": self.detection_limits,
             "masked": self.masked,
+            "hidden": self.hidden,
             "internal_errors": self.internal_errors,
             "notes": self.notes,
             "rms_before": self._rms_total(self.base),
@@ -329,8 +335,8 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         notes.append("the recordings leave the slow part of the noise undetermined in "
                      f"{', '.join(p['where'] for p in rivals)} (two noise models neither "
                      "of which they rule out); every decision is the same under both")
-    limits, masked = _limits(ctx, comm, current, in_model, chosen, J, final_noise,
-                             effects)
+    limits, masked, hidden = _limits(ctx, comm, current, in_model, chosen, J, final_noise,
+                                     effects)
     if rem["reproducible"]["repeats"] == "none":
         notes.append("no repeated ramp (one pass of each): wander and a smooth misfit cannot "
                      "be told apart by repetition; only the located test applies")
@@ -355,15 +361,16 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
                      ambiguous, disc, time.perf_counter() - t0, obs, notes, tried, doubt,
                      timings, limits, masked, list(errors), noise_rivals=rivals,
-                     drift=drift)
+                     drift=drift, hidden=hidden)
 
 
 def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np.ndarray,
-            nm: NoiseModel, effects) -> tuple[dict, list]:
+            nm: NoiseModel, effects) -> tuple[dict, list, list]:
     """The detection limits of the candidates that could join the final model ``current``
     (of effects ``in_model``, named or merely tried) under the final noise model and the
-    next round's bar (:func:`diagnosis.screen.detection_limits`), and those of them the
-    ``named`` effects mask: some allowed value would show alone, none beside them."""
+    next round's bar (:func:`diagnosis.screen.detection_limits`), those of them the
+    ``named`` effects mask (some allowed value would show alone, none beside them), and
+    those one named effect hides (:func:`diagnosis.screen.hidden_behind`)."""
     lib = ctx.lib
     cands = {e: lib[e] for e in (effects or lib)
              if e not in in_model and compatible(e, in_model)}
@@ -384,7 +391,8 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
         try:
             return detection_limits(ctx.sim, current, parameter_names(lib, in_model), J,
                                     group, nm.whiten_jacobian,
-                                    lambda eff: ctx.needed(len(eff.names), m), pts)
+                                    lambda eff: ctx.needed(len(eff.names), m), pts,
+                                    {e: lib[e].names for e in named})
         except MODEL_FAILURES as exc:  # a note is not worth a failed diagnosis
             log.warning("detection limits at the final model: %s: %s",
                         type(exc).__name__, exc)
@@ -410,14 +418,14 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
             for e, d in (part or {}).items():
                 limits.setdefault(e, {}).update(d)
     if not limits:
-        return {}, []
+        return {}, [], []
     masked = [{"effect": e, "beside": sorted(named), "separating_test": " / ".join(
         dict.fromkeys(separating_test(e, c) for c in named))}
         for e, d in limits.items()
         if named and not any(v["within_bounds"] for v in d.values())
         and any(masked_by_model(v, lib[e].bounds(Param.parse(v["parameter"])))
                 for v in d.values())]
-    return limits, masked
+    return limits, masked, hidden_behind(limits, lib, separating_test)
 
 
 def decide(chosen: list, systematic: bool, rms_before: float, rms_after: float, *,

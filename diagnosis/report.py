@@ -160,6 +160,14 @@ def _limit_lines(res: dict) -> list[str]:
         lines += [f"**Cannot tell whether {m['effect']} is also present**: beside "
                   f"{' + '.join(m['beside'])}, no allowed value of it would show in these "
                   f"tests; would tell: {m['separating_test']}.", ""]
+    for h in res.get("hidden", []):
+        without = ", ".join(f"{x:.4g}" for x in h["would_show_without"])
+        beside = ", ".join(f"{x:.4g}" for x in h["would_show_at"]) or "no allowed value"
+        lines += [f"**{h['effect']} could hide behind {h['behind']}**: without "
+                  f"{h['behind']} in the model, {h['parameter']} would show from {without}; "
+                  f"beside it, only from {beside} (its variance inflated "
+                  f"{h['inflation']:.3g} times: these tests can hardly tell the two apart); "
+                  f"would tell: {h['separating_test']}.", ""]
     limits = res.get("detection_limits") or {}
     if limits:
         lines += ["How large the candidates not named would have to be to show beside the final "

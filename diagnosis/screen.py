@@ -222,7 +222,8 @@ def _term_copies(effect, points: list[dict], values) -> tuple[Param, Param, list
 
 
 def detection_limits(sim, current, current_names, J_current: np.ndarray, effects: dict,
-                     whiten, needed, points: dict | None = None) -> dict:
+                     whiten, needed, points: dict | None = None,
+                     named: dict | None = None) -> dict:
     """How large each candidate of ``effects`` (of :data:`LINEAR_AT_NEUTRAL` and, with
     their design ``points`` ({effect: [point, ...]}), of :data:`AT_DESIGN`,
     :data:`PER_POINT` and :data:`IN_COMPLIANCE` (solved: :func:`_compliance_limits`); not in the
@@ -239,8 +240,11 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
     from the same prediction).  Returns {effect: {label:
     {"parameter", "at" (the nuisance held, or {}), "from", "step", "step_alone" (beside
     nothing: what the tests can show at all), "would_show_at", "within_bounds"}}}, the label
-    the parameter's name (with ``at ...`` for a design point).  Raises ValueError when a
-    Jacobian is not finite."""
+    the parameter's name (with ``at ...`` for a design point).  With ``named`` ({effect:
+    its parameter names} of effects in the current model), each limit of a linearised
+    candidate also gets "step_without" ({effect: the step beside the model without that
+    effect's columns}: :func:`hidden_behind`).  Raises ValueError when a Jacobian is not
+    finite."""
     points = points or {}
     taken = set(current_names)
 
@@ -254,7 +258,7 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
                              points) if compliance else {}
     for e, eff in free(PER_POINT).items():
         out[e] = _per_point_limits(sim, current, current_names, J_current, eff, points[e],
-                                   whiten, needed(eff))
+                                   whiten, needed(eff), named)
     linear = free(LINEAR_AT_NEUTRAL)
     at_design = {e: _term_copies(eff, points[e], current.values)
                  for e, eff in free(AT_DESIGN).items()}
@@ -276,12 +280,14 @@ def detection_limits(sim, current, current_names, J_current: np.ndarray, effects
         J_current, jac = own[:, :len(current_names)], own[:, len(current_names):]
     else:
         jac = sim.predict(point, names).jacobian
-    U, Jc = _span(J_current, whiten), whiten(np.asarray(jac, float))
+    (U, without), Jc = _spans(J_current, whiten, current_names, named), whiten(
+        np.asarray(jac, float))
     if not np.isfinite(Jc).all():
         raise ValueError("a Jacobian at the final model is not finite")
     for col, (e, label, n, coord, at) in enumerate(rows):
         out.setdefault(e, {})[label] = _limit(Jc[:, col], U, math.sqrt(needed(effects[e])),
-                                              n, values[coord], effects[e].bounds(n), at)
+                                              n, values[coord], effects[e].bounds(n), at,
+                                              without)
     return out
 
 
@@ -294,17 +300,25 @@ def _at_label(amp: Param, nuis: Param, x: float) -> str:
 
 
 def _limit(j: np.ndarray, U: np.ndarray, bar: float, n, x0: float, bounds: tuple,
-           at: dict) -> dict:
+           at: dict, without: dict | None = None) -> dict:
     """One entry of :func:`detection_limits`: the whitened column ``j`` of parameter ``n``
-    at ``x0``, the model's span ``U``, the square root of the chi-square ``bar``."""
+    at ``x0``, the model's span ``U``, the square root of the chi-square ``bar``;
+    ``without``: {effect: the span of the model without that effect's columns}."""
     lo, hi = bounds
-    left = float(np.linalg.norm(j - U @ (U.T @ j)))
+
+    def step_beside(V):
+        left = float(np.linalg.norm(j - V @ (V.T @ j)))
+        return bar / left if left > 0 else math.inf
+
     alone = float(np.linalg.norm(j))
-    step = bar / left if left > 0 else math.inf
+    step = step_beside(U)
     show = [x for x in (x0 - step, x0 + step) if lo <= x <= hi]
-    return {"parameter": str(n), "at": at, "from": x0, "step": step,
-            "step_alone": bar / alone if alone > 0 else math.inf,
-            "would_show_at": show, "within_bounds": bool(show)}
+    out = {"parameter": str(n), "at": at, "from": x0, "step": step,
+           "step_alone": bar / alone if alone > 0 else math.inf,
+           "would_show_at": show, "within_bounds": bool(show)}
+    if without:
+        out["step_without"] = {e: step_beside(V) for e, V in without.items()}
+    return out
 
 
 # A prediction within this many noise SDs of the final fit's (every row) is on its path,
@@ -315,13 +329,13 @@ SAME_PATH_SD = 0.01
 
 
 def _per_point_limits(sim, current, current_names, J_current, effect, points: list[dict],
-                      whiten, bar2: float) -> dict:
+                      whiten, bar2: float, named: dict | None = None) -> dict:
     """:func:`detection_limits` of a :data:`PER_POINT` effect: its amplitude at zero and
     its nuisance parameter at each design point, one prediction each with the amplitude's
     column (and the model's columns too when the prediction leaves the final fit's path
     by more than :data:`SAME_PATH_SD`)."""
     amp, nuis = _amplitude_and_nuisance(effect)
-    final = _span(J_current, whiten)  # the final fit's model span, once
+    final = _spans(J_current, whiten, current_names, named)  # the final fit's, once
     out = {}
     for pt in points:
         x = float(pt[str(nuis)])
@@ -329,15 +343,15 @@ def _per_point_limits(sim, current, current_names, J_current, effect, points: li
         pred = sim.predict(values, [amp])
         moved = whiten((pred.y - current.prediction)[:, None])
         if np.all(np.abs(moved) < SAME_PATH_SD):
-            U, j = final, pred.jacobian
+            (U, without), j = final, pred.jacobian
         else:
             own = sim.predict(values, list(current_names) + [amp]).jacobian
-            U, j = _span(own[:, :-1], whiten), own[:, -1:]
+            (U, without), j = _spans(own[:, :-1], whiten, current_names, named), own[:, -1:]
         Jc = whiten(np.asarray(j, float))
         if not np.isfinite(Jc).all():
             raise ValueError("a Jacobian at the final model is not finite")
         out[_at_label(amp, nuis, x)] = _limit(Jc[:, 0], U, math.sqrt(bar2), amp, 0.0,
-                                              effect.bounds(amp), {str(nuis): x})
+                                              effect.bounds(amp), {str(nuis): x}, without)
     return out
 
 
@@ -349,6 +363,15 @@ def _span(J_current, whiten) -> np.ndarray:
         raise ValueError("a Jacobian at the final model is not finite")
     U, sv, _ = np.linalg.svd(Jm, full_matrices=False)
     return U[:, sv > sv.max(initial=0.0) * 1e-10]
+
+
+def _spans(J_model, whiten, names, named: dict | None) -> tuple[np.ndarray, dict]:
+    """:func:`_span` of the model's columns (of parameters ``names``), and per effect of
+    ``named`` ({effect: its parameter names}) the span without that effect's columns."""
+    J_model = np.asarray(J_model, float)
+    without = {e: _span(J_model[:, [i for i, n in enumerate(names) if n not in set(ns)]],
+                        whiten) for e, ns in (named or {}).items()}
+    return _span(J_model, whiten), without
 
 
 def _compliance_limits(sim, current, J_current, effects: dict, whiten, needed,
@@ -432,6 +455,37 @@ class _GlueScan:
 
 SCAN_SOLVES = 4  # solves of a glue layer's scan at most
 SCAN_TOLERANCE = 0.1  # a glue layer's stated stiffness: its chi-square within 10 % of the bar
+
+
+# The variance inflation at which a candidate counts as hidden behind a named effect: the
+# textbook bar of collinearity (a parameter's variance ten times what it is without the
+# other; its detection step 3.2 times as long)
+HIDDEN_INFLATION = 10.0
+
+
+def hidden_behind(limits: dict, lib: dict, separating_test) -> list[dict]:
+    """The candidates a named effect hides: per (candidate, named effect), where some
+    allowed value of the candidate would show beside the model without that effect while
+    beside it the variance of the candidate's parameter is at least
+    :data:`HIDDEN_INFLATION` times as large ((step / step_without)^2), the limit where it
+    inflates most.  ``limits``: :func:`detection_limits` with ``named``."""
+    out: dict = {}
+    for e, d in limits.items():
+        for v in d.values():
+            n = Param.parse(v["parameter"])
+            lo, hi = lib[e].bounds(n)
+            for named, s0 in (v.get("step_without") or {}).items():
+                shows = [x for x in (v["from"] - s0, v["from"] + s0) if lo <= x <= hi]
+                infl = (v["step"] / s0) ** 2 if 0 < s0 < math.inf else 0.0
+                if not shows or infl < HIDDEN_INFLATION or (
+                        (e, named) in out and out[e, named]["inflation"] >= infl):
+                    continue
+                out[e, named] = {"effect": e, "behind": named, "parameter": v["parameter"],
+                                 "at": v["at"], "inflation": infl,
+                                 "would_show_without": shows,
+                                 "would_show_at": v["would_show_at"],
+                                 "separating_test": separating_test(e, named)}
+    return list(out.values())
 
 
 def masked_by_model(limit: dict, bounds: tuple[float, float]) -> bool:

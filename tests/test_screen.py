@@ -173,6 +173,55 @@ def test_detection_limit_is_the_step_that_earns_a_place():
                          lambda J: J / sd, lambda eff: 16.0)
 
 
+def test_a_candidate_hidden_behind_a_named_effect():
+    """y = mu a + k g + nu0 b on a linear model, g (a named glue layer's column) nearly
+    along b: beside mu alone nu0 would show at the step whose signature, refitted with mu,
+    removes the bar (16); beside mu and g its step is longer by the factor of the textbook
+    collinearity, 1 / sqrt(1 - R^2) with R^2 of b on g after mu, and the candidate is
+    reported hidden behind the glue layer (variance inflation >= 10) with its separating
+    test; a g orthogonal to b hides nothing."""
+    from diagnosis.effects import EFFECTS, separating_test
+    from diagnosis.screen import HIDDEN_INFLATION, detection_limits, hidden_behind
+
+    x = np.linspace(0.0, 1.0, 50)
+    a, b = x, x**2
+    K = Param("log10_k")
+    sd = 0.01
+    lib = {"compressibility": EFFECTS["compressibility"]}
+
+    def limits_with(g):
+        cols = {MU: a, Param("nu0"): b, K: g}
+        sim = types.SimpleNamespace(nu0=0.49, predict=lambda values, names: types.
+                                    SimpleNamespace(y=None, jacobian=np.column_stack(
+                                        [cols[n] for n in names])))
+        return detection_limits(sim, types.SimpleNamespace(values={MU: 2.0, K: 1.0}),
+                                [MU, K], np.column_stack([a, g]), lib, lambda J: J / sd,
+                                lambda eff: 16.0, named={"imperfect_gluing": (K,)})
+
+    def residual(col, *others):  # of col after least squares on the others
+        A = np.column_stack(others)
+        return col - A @ np.linalg.lstsq(A, col, rcond=None)[0]
+
+    g = b + 0.01 * np.sin(9.0 * x)  # nearly b
+    nu = limits_with(g)["compressibility"]["nu0"]
+    s0 = nu["step_without"]["imperfect_gluing"]
+    data = 2.0 * a + s0 * b  # nu0 short of 0.49 by the step without g, refitted with mu
+    (m,), *_ = np.linalg.lstsq(a[:, None], data, rcond=None)
+    assert abs(np.sum(((data - m * a) / sd) ** 2) - 16.0) < 1e-6
+    rb = residual(b, a)
+    r2 = 1.0 - np.sum(residual(b, a, g) ** 2) / np.sum(rb**2)
+    assert abs((nu["step"] / s0) ** 2 - 1.0 / (1.0 - r2)) < 1e-6 * (1.0 / (1.0 - r2))
+    (h,) = hidden_behind({"compressibility": {"nu0": nu}}, lib, separating_test)
+    assert h["effect"] == "compressibility" and h["behind"] == "imperfect_gluing"
+    assert h["inflation"] >= HIDDEN_INFLATION and h["would_show_without"] == [0.49 - s0]
+    assert "lubricated" in h["separating_test"]
+    # a glue column orthogonal to b after mu changes nothing: nothing hidden
+    g_orth = residual(np.sin(3.0 * np.pi * x), a, b)
+    nu = limits_with(g_orth)["compressibility"]["nu0"]
+    assert abs(nu["step"] / nu["step_without"]["imperfect_gluing"] - 1.0) < 1e-9
+    assert hidden_behind({"compressibility": {"nu0": nu}}, lib, separating_test) == []
+
+
 def test_detection_limits_of_effects_with_a_time_or_exponent_of_their_own():
     """Viscoelasticity and a second Ogden term act at their neutral zero only through tau
     and alpha_1: their limit is stated at each design point, each a further Maxwell branch
@@ -394,7 +443,7 @@ def test_limits_survive_a_history_that_cannot_be_followed(caplog):
         return _limits(ctx, None, current, [], [], x[:, None], nm, None)
 
     with caplog.at_level(logging.WARNING, logger="diagnosis.engine"):
-        limits, masked = run(lambda q: any(p.family == "beta" for p in q))
+        limits, masked, hidden = run(lambda q: any(p.family == "beta" for p in q))
     assert set(limits) == {"compressibility", "artefacts", "ogden_2term", "mullins",
                            "imperfect_gluing"}
     assert len(limits["ogden_2term"]) == 4
@@ -404,8 +453,8 @@ def test_limits_survive_a_history_that_cannot_be_followed(caplog):
     glue = limits["imperfect_gluing"]["log10_k"]  # in its own solves (interface springs)
     assert len(calls) == 3 + 3 + len(glue["solved_at"]) and glue["within_bounds"]
     assert "Newton failed" in caplog.text
-    limits, masked = run(lambda q: True)  # the final path itself
-    assert limits == {} and masked == []
+    limits, masked, hidden = run(lambda q: True)  # the final path itself
+    assert limits == {} and masked == [] and hidden == []
 
 
 def test_the_report_states_the_limits_and_what_is_masked():
@@ -427,6 +476,15 @@ def test_the_report_states_the_limits_and_what_is_masked():
     assert "| ogden_2term | mu_1 at alpha_1 = 5 | 0 | no allowed value |" in text
     assert "a glue layer softer than k = 10 kPa/mm would show" in text
     assert "log10_k = 1, 1.1, 2.07" in text
+    res = {"hidden": [{"effect": "compressibility", "behind": "imperfect_gluing",
+                       "parameter": "nu0", "at": {}, "inflation": 31.4,
+                       "would_show_without": [0.4831], "would_show_at": [0.4065],
+                       "separating_test": "a lubricated (slip-end) compression test"}]}
+    text = "\n".join(_limit_lines(res))
+    assert ("**compressibility could hide behind imperfect_gluing**: without "
+            "imperfect_gluing in the model, nu0 would show from 0.4831; beside it, only "
+            "from 0.4065 (its variance inflated 31.4 times" in text)
+    assert "would tell: a lubricated (slip-end) compression test." in text
 
 
 def test_the_report_says_when_the_effect_just_added_lost_its_place():
