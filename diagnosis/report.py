@@ -162,12 +162,13 @@ def _limit_lines(res: dict) -> list[str]:
                   f"tests; would tell: {m['separating_test']}.", ""]
     for h in res.get("hidden", []):
         without = ", ".join(f"{x:.4g}" for x in h["would_show_without"])
-        beside = ", ".join(f"{x:.4g}" for x in h["would_show_at"]) or "no allowed value"
+        beside = ", ".join(f"{x:.4g}" for x in h["would_show_at"])
+        beside = (f"only from {beside} (its variance inflated {h['inflation']:.3g} times: "
+                  "these tests can hardly tell the two apart)" if beside else
+                  "no allowed value would (these tests cannot tell the two apart)")
         lines += [f"**{h['effect']} could hide behind {h['behind']}**: without "
                   f"{h['behind']} in the model, {h['parameter']} would show from {without}; "
-                  f"beside it, only from {beside} (its variance inflated "
-                  f"{h['inflation']:.3g} times: these tests can hardly tell the two apart); "
-                  f"would tell: {h['separating_test']}.", ""]
+                  f"beside it, {beside}; would tell: {h['separating_test']}.", ""]
     limits = res.get("detection_limits") or {}
     if limits:
         lines += ["How large the candidates not named would have to be to show beside the final "

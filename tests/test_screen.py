@@ -485,6 +485,10 @@ def test_the_report_states_the_limits_and_what_is_masked():
             "imperfect_gluing in the model, nu0 would show from 0.4831; beside it, only "
             "from 0.4065 (its variance inflated 31.4 times" in text)
     assert "would tell: a lubricated (slip-end) compression test." in text
+    res["hidden"][0].update(inflation=float("inf"), would_show_at=[])  # hidden whole
+    text = "\n".join(_limit_lines(res))
+    assert ("beside it, no allowed value would (these tests cannot tell the two apart); "
+            "would tell" in text and "inf times" not in text)
 
 
 def test_the_report_says_when_the_effect_just_added_lost_its_place():
