@@ -425,7 +425,7 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
         if named and not any(v["within_bounds"] for v in d.values())
         and any(masked_by_model(v, lib[e].bounds(Param.parse(v["parameter"])))
                 for v in d.values())]
-    return limits, masked, hidden_behind(limits, lib, separating_test)
+    return limits, masked, hidden_behind(limits, lib)
 
 
 def decide(chosen: list, systematic: bool, rms_before: float, rms_after: float, *,

@@ -28,6 +28,8 @@ import pandas as pd
 
 from brain_fe.parameters import Param
 
+from .effects import separating_test
+
 # Fixed generic design (see docstring), scaled by the data
 TAU_OVER_RAMP = (0.1, 1.0, 10.0)  # relaxation time / duration of a ramp
 M_OVER_ENERGY = (0.01, 0.1, 1.0)  # softening energy scale / energy reached
@@ -463,7 +465,7 @@ SCAN_TOLERANCE = 0.1  # a glue layer's stated stiffness: its chi-square within 1
 HIDDEN_INFLATION = 10.0
 
 
-def hidden_behind(limits: dict, lib: dict, separating_test) -> list[dict]:
+def hidden_behind(limits: dict, lib: dict) -> list[dict]:
     """The candidates a named effect hides: per (candidate, named effect), where some
     allowed value of the candidate would show beside the model without that effect while
     beside it the variance of the candidate's parameter is at least

@@ -180,7 +180,7 @@ def test_a_candidate_hidden_behind_a_named_effect():
     collinearity, 1 / sqrt(1 - R^2) with R^2 of b on g after mu, and the candidate is
     reported hidden behind the glue layer (variance inflation >= 10) with its separating
     test; a g orthogonal to b hides nothing."""
-    from diagnosis.effects import EFFECTS, separating_test
+    from diagnosis.effects import EFFECTS
     from diagnosis.screen import HIDDEN_INFLATION, detection_limits, hidden_behind
 
     x = np.linspace(0.0, 1.0, 50)
@@ -211,7 +211,7 @@ def test_a_candidate_hidden_behind_a_named_effect():
     rb = residual(b, a)
     r2 = 1.0 - np.sum(residual(b, a, g) ** 2) / np.sum(rb**2)
     assert abs((nu["step"] / s0) ** 2 - 1.0 / (1.0 - r2)) < 1e-6 * (1.0 / (1.0 - r2))
-    (h,) = hidden_behind({"compressibility": {"nu0": nu}}, lib, separating_test)
+    (h,) = hidden_behind({"compressibility": {"nu0": nu}}, lib)
     assert h["effect"] == "compressibility" and h["behind"] == "imperfect_gluing"
     assert h["inflation"] >= HIDDEN_INFLATION and h["would_show_without"] == [0.49 - s0]
     assert "lubricated" in h["separating_test"]
@@ -219,7 +219,7 @@ def test_a_candidate_hidden_behind_a_named_effect():
     g_orth = residual(np.sin(3.0 * np.pi * x), a, b)
     nu = limits_with(g_orth)["compressibility"]["nu0"]
     assert abs(nu["step"] / nu["step_without"]["imperfect_gluing"] - 1.0) < 1e-9
-    assert hidden_behind({"compressibility": {"nu0": nu}}, lib, separating_test) == []
+    assert hidden_behind({"compressibility": {"nu0": nu}}, lib) == []
 
 
 def test_detection_limits_of_effects_with_a_time_or_exponent_of_their_own():
