@@ -28,6 +28,7 @@ __all__ = [
     "vector_space",
     "scalar_space",
     "stable_constant_counts",
+    "equispaced_coordinates",
     "form",
     "petsc_vec",
     "apply_lifting",
@@ -72,6 +73,28 @@ def stable_constant_counts() -> None:
     # UFL 2024: an itertools.count per class, None before the first Constant
     nxt = CONSTANT_COUNT_START if C._counter is None else next(C._counter)
     C._counter = itertools.count(max(nxt, CONSTANT_COUNT_START))
+
+
+# FFCx 0.5 gives a mesh's coordinate element the point variant "equispaced" when it first
+# compiles a form on that mesh (``ffcx.analysis``: it replaces the element of the form's
+# domain, which is the mesh's own UFL domain). The signature of a form (the key of the JIT
+# cache) includes that element, so every form made on the mesh after the first compilation
+# had another key than the same form made before it: a diagnosis on a warm cache that met
+# one new form compiled the later ones again (measured: 2 forms of 20-60 s in each of
+# several runs in a row on a cache warmed by a run). Setting the variant when the mesh is
+# made keys every form as FFCx compiles it anyway (the generated code is the same: FFCx
+# uses equispaced points for the coordinate map either way).
+def equispaced_coordinates(mesh) -> None:
+    """Give ``mesh``'s UFL coordinate element the variant FFCx would (DOLFINx 0.5's UFL
+    elements; a no-op for basix elements, DOLFINx >= 0.7)."""
+    legacy = getattr(ufl, "VectorElement", None)  # gone from UFL 2023.2 on
+    domain = mesh.ufl_domain()
+    element = domain.ufl_coordinate_element()
+    if legacy is None or not isinstance(element, legacy) or element.variant() is not None:
+        return
+    equi = ufl.FiniteElement(element.family(), element.cell(), element.degree(),
+                             element.quadrature_scheme(), variant="equispaced")
+    domain._ufl_coordinate_element = ufl.VectorElement(equi)  # as ffcx.analysis makes it
 
 
 _FORM_KW = inspect.signature(fem.form).parameters

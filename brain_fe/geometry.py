@@ -57,6 +57,9 @@ class Geometry:
     quadrature_degree: int
     markers: dict[str, Marker] = field(default_factory=dict)
 
+    def __post_init__(self):
+        _compat.equispaced_coordinates(self.mesh)  # stable JIT cache keys of its forms
+
     @property
     def dx(self):
         return ufl.Measure("dx", domain=self.mesh,

@@ -186,3 +186,35 @@ def test_a_model_compiles_to_the_same_forms_whatever_was_built_before():
         assert signature(97) == signature(0)  # 9 Constants, at 97-105 or at 0-8
     finally:  # later Constants count on from above every earlier one
         _set_constant_count(max(before, _set_constant_count(0)))
+
+
+def _ffcx_analyse(form) -> None:
+    """What FFCx does to a form before it compiles it (the JIT cache missed)."""
+    import inspect
+
+    import ffcx.analysis
+
+    params = inspect.signature(ffcx.analysis.analyze_ufl_objects).parameters
+    if "scalar_type" in params:  # FFCx >= 0.8
+        ffcx.analysis.analyze_ufl_objects([form], "float64")
+        return
+    from ffcx.parameters import get_parameters  # FFCx 0.5
+
+    ffcx.analysis.analyze_ufl_objects([form], get_parameters())
+
+
+def test_a_form_has_the_same_key_before_and_after_a_form_on_its_mesh_compiled():
+    """FFCx 0.5 gives a mesh's coordinate element the variant 'equispaced' the first time
+    it compiles a form on that mesh, and a form's signature (the JIT cache's key) includes
+    that element: a model built after any compilation on its mesh got other keys than the
+    same model built before, so a diagnosis on a warm cache that compiled one new form
+    compiled the following ones again (2 forms of 20-60 s in each of several runs in a
+    row). The same model on the same mesh must have one signature either way."""
+    from brain_fe import geometry
+    from brain_fe.model import ForwardModel
+
+    g = geometry.axisymmetric(refinement=1, comm=MPI.COMM_SELF)
+    first = ForwardModel(g, maxwell=1)
+    before = first.residual_ufl.signature()
+    _ffcx_analyse(ForwardModel(g).residual_ufl)  # as on a cache miss
+    assert ForwardModel(g, maxwell=1).residual_ufl.signature() == before
