@@ -93,7 +93,7 @@ def test_pairs_are_also_scored_where_their_tests_separate_both_effects():
     assert separable(pair({"a": float("nan"), "b": 5.0}, "a")[0]) is None  # not measured
     s = score({k: v[0] for k, v in cases.items()}, {k: v[1] for k, v in cases.items()})
     assert s["pair"] == {"cases": 4, "correct": 2, "within_ambiguity": 2, "within_limit": 0,
-                         "separable": 2, "separable_correct": 1, "measured": 3}
+                         "said_hidden": 0, "separable": 2, "separable_correct": 1, "measured": 3}
     # a verdict with a *cannot tell* beside it is counted apart: here one wrong (p3) says
     # so, one right (p2) too, and the wrong p1 does not
     cases["p3"][1]["cannot_tell"] = cases["p2"][1]["cannot_tell"] = "the noise ..."
@@ -127,7 +127,7 @@ def test_open_world_two_cases_blind(tmp_path):
     protocol: the control `none`, the effect named and explained at the noise level."""
     s = run_open_benchmark(2, 1, tmp_path, comm=MPI.COMM_SELF)
     assert s["control"] == {"cases": 1, "correct": 1, "within_ambiguity": 1,
-                            "within_limit": 0, "false_alarms": 0}
+                            "within_limit": 0, "said_hidden": 0, "false_alarms": 0}
     assert s["single"]["correct"] == 1
     assert s["explained_rms_over_true_noise_max"] < 1.2
     labels = json.loads((tmp_path / "labels.json").read_text())
@@ -336,6 +336,34 @@ def test_an_effect_at_zero_size_is_invisible_beside_its_partner():
                             {})
     assert beside["compressibility"] < 0.1
     assert beside["imperfect_gluing"] > 1.5
+
+
+def test_a_missed_effect_said_to_possibly_hide_behind_a_named_one_is_counted_apart():
+    """The five compressibility + glue pairs the oracle found inseparable name the glue
+    layer and say compressibility could hide behind it (the stored world029 of
+    benchmarks/results/open_world/hidden-behind): counted apart from the exact set, in the
+    summary; not when the verdict adds a wrong effect, names nothing of the truth, or the
+    case is an outside one, nor when what it says could hide is another effect."""
+    from diagnosis.open_benchmark import _correct, _said_hidden, score, summary_markdown
+
+    lab = {"kind": "pair", "effects": ["compressibility", "imperfect_gluing"],
+           "expected": "compressibility+imperfect_gluing", "noise_kinds": ["white"],
+           "base_misfit_over_noise": {"compressibility": 1.0, "imperfect_gluing": 5.0}}
+    hid = [{"effect": "compressibility", "behind": "imperfect_gluing", "inflation": 45.0}]
+    res = {"verdict": "imperfect_gluing", "status": "explained",
+           "effects": ["imperfect_gluing"], "hidden": hid, "elapsed_s": 1.0,
+           "rms_after_over_true_noise": 0.95}
+    assert not _correct(lab, res) and _said_hidden(lab, res)
+    assert not _said_hidden(lab, {**res, "hidden": []})
+    assert not _said_hidden(lab, {**res, "hidden": [{**hid[0], "effect": "ogden_2term"}]})
+    assert not _said_hidden(lab, {**res, "effects": ["imperfect_gluing", "mullins"]})
+    assert not _said_hidden(lab, {**res, "effects": []})
+    assert not _said_hidden({**lab, "kind": "outside"}, res)
+    assert not _said_hidden(lab, {**res, "effects": lab["effects"]})  # the exact set
+    s = score({"w": lab}, {"w": res})
+    assert s["pair"]["said_hidden"] == 1 and s["pair"]["correct"] == 0
+    s["left_out"] = []
+    assert "the rest said to possibly hide behind it: 1" in summary_markdown(s)
 
 
 def test_a_missed_effect_within_its_stated_detection_limit_is_counted_apart():
