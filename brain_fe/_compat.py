@@ -28,6 +28,7 @@ __all__ = [
     "vector_space",
     "scalar_space",
     "stable_constant_counts",
+    "fresh_label_counts",
     "equispaced_coordinates",
     "form",
     "petsc_vec",
@@ -73,6 +74,22 @@ def stable_constant_counts() -> None:
     # UFL 2024: an itertools.count per class, None before the first Constant
     nxt = CONSTANT_COUNT_START if C._counter is None else next(C._counter)
     C._counter = itertools.count(max(nxt, CONSTANT_COUNT_START))
+
+
+# The key of a compiled expression (a history update) in FFCx 0.9 renumbers its
+# coefficients and constants but not its Labels (the tags of ``ufl.variable``), which UFL
+# 2024 then signs by their global count: the same model's update got another key after
+# other models had made variables, and was compiled again (measured in the rootfs lane: the
+# same update under five keys). UFL 2022 numbers Labels by their order in the expression.
+# A Label only has to be unique within the expressions of one model.
+def fresh_label_counts() -> None:
+    """Let the next UFL Label be counted from 0 again (UFL 2024's counter; a no-op for UFL
+    2022, whose signatures do not hold the count): call it before a model makes its
+    variables."""
+    from ufl.variable import Label
+
+    if not hasattr(Label, "_globalcount"):
+        Label._counter = itertools.count()
 
 
 # FFCx 0.5 gives a mesh's coordinate element the point variant "equispaced" when it first

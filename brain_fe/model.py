@@ -73,6 +73,7 @@ class ForwardModel:
         self.u = fem.Function(self.V, name="displacement")
         st = _compat.scalar_type()
         _compat.stable_constant_counts()  # the forms' signatures, whatever came before
+        _compat.fresh_label_counts()  # and those of the history update
         self.constants = {p: fem.Constant(msh, st(1.0))
                           for p in self.material.parameters() + EndConditions.parameters(ends)}
         self.c_dt = fem.Constant(msh, st(1.0))  # time increment of the (sub)step [s]

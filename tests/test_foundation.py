@@ -218,3 +218,33 @@ def test_a_form_has_the_same_key_before_and_after_a_form_on_its_mesh_compiled():
     before = first.residual_ufl.signature()
     _ffcx_analyse(ForwardModel(g).residual_ufl)  # as on a cache miss
     assert ForwardModel(g, maxwell=1).residual_ufl.signature() == before
+
+
+def test_a_history_update_has_the_same_key_whatever_was_built_before(monkeypatch):
+    """FFCx 0.9 signs a compiled expression (the history update of a viscoelastic model)
+    with the global counts of its UFL Labels: the same update got another JIT cache key
+    after other models had made variables, and was compiled again. The key (FFCx's own
+    ``compute_signature``) must not depend on what was built before."""
+    import ffcx.naming
+
+    from brain_fe import geometry
+    from brain_fe.history import HistoryState
+    from brain_fe.model import ForwardModel
+
+    seen = []
+    original = HistoryState.compile_update
+
+    def recording(self, update_ufl):
+        seen.append((update_ufl, self.points))
+        original(self, update_ufl)
+
+    monkeypatch.setattr(HistoryState, "compile_update", recording)
+
+    def key() -> str:
+        g = geometry.axisymmetric(refinement=1, comm=MPI.COMM_SELF)
+        ForwardModel(g, maxwell=1)
+        return ffcx.naming.compute_signature([seen[-1]], "")
+
+    first = key()
+    ForwardModel(geometry.axisymmetric(refinement=1, comm=MPI.COMM_SELF), n_terms=2)
+    assert key() == first
