@@ -40,7 +40,7 @@ from .materials import MaterialModel, MaterialParameters
 from .parameters import K_R, K_THETA, Direction, Param, Parameters
 from .protocols import Protocol, Step, plate_position
 from .response import Response
-from .sensitivities import DirectSensitivities, PathSensitivities
+from .sensitivities import Converged, DirectSensitivities, PathSensitivities
 from .solver import NewtonSolver
 from .stepper import follow
 from .vocabulary import TIME, channel_values
@@ -159,6 +159,20 @@ class ForwardModel:
         """(axial force [mN], torque [mN mm]) on the top plate at the current state."""
         return self.ends.reactions(self.newton.assemble_residual(with_bcs=False), self.comm)
 
+    def _at_converged(self, record: bool, path: bool) -> Converged:
+        """The converged state's residual (where the reactions or path sensitivities need
+        it), reactions (if ``record``) and history update, each computed once: the path
+        sensitivities perturb and restore this state and reuse them."""
+        base = Converged()
+        if record or path:
+            base.residual = (self.newton.free_residual() if self.lift_off is None
+                             else self.newton.assemble_residual(with_bcs=False).copy())
+        if record:
+            base.reactions = self.ends.reactions(base.residual, self.comm)
+        if self.state is not None:
+            base.update = self.state.evaluate()
+        return base
+
     def _axial_stiffness(self) -> float:
         """Small-strain axial stiffness of the specimen with slip ends, 3 mu A / H
         [mN/mm]: the first guess of the force-free search off the plate."""
@@ -264,9 +278,11 @@ class ForwardModel:
 
         def converged(step: Step | None):
             """Book-keeping after a converged (sub)step: sensitivities, outputs, history."""
-            sens = self._sens.at_state(record=step is not None) if names else {}
+            base = self._at_converged(record=step is not None,
+                                      path=bool(names) and self.path_sensitivities)
+            sens = self._sens.at_state(step is not None, base) if names else {}
             if step is not None:
-                fz, torque = self.reactions()
+                fz, torque = base.reactions
                 rows.append({TIME: step.time_s, "cycle": step.cycle, "branch": step.branch,
                              "control": step.value,
                              **channel_values(protocol.test, fz, torque, R)})
@@ -280,7 +296,7 @@ class ForwardModel:
             if self.lift_off is not None:
                 self.lift_off.commit(*((step.time_s, step.value, step.cycle) if step else ()))
             if self.state is not None:
-                self.state.update()
+                self.state.scatter(base.update)
 
         try:
             log_ = follow(protocol, steps, x=x, newton=self.lift_off or self.newton,

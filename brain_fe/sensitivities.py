@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 
 import dolfinx.fem.petsc as fem_petsc
 import numpy as np
@@ -41,6 +42,18 @@ def _ghost_forward(x) -> None:
 
 def _ghost_reverse(x) -> None:
     x.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+
+
+@dataclass
+class Converged:
+    """What the model computes once at a converged (sub)step, before any sensitivity
+    perturbs it: the residual without its Dirichlet rows set (None where nothing needs
+    it), the plate's reactions (None off the output points) and the history update G
+    (None without history)."""
+
+    residual: object = None
+    reactions: tuple[float, float] | None = None
+    update: np.ndarray | None = None
 
 
 class DirectSensitivities:
@@ -77,7 +90,8 @@ class DirectSensitivities:
                 raise ValueError(f"no direct sensitivity for {', '.join(bad)}")
         self.requests = requests
 
-    def at_state(self, record: bool) -> dict:
+    def at_state(self, record: bool, base: Converged) -> dict:
+        """Reaction derivatives at a converged state if ``record`` (``base`` unused)."""
         if not record:
             return {}
         m = self.model
@@ -139,8 +153,10 @@ class PathSensitivities:
         return 1e-6 * min(max(abs(float(c[p].value)), FD_FLOOR.get(p.family, 1e-3)) / abs(w)
                           for p, w in d.weights if w != 0.0)
 
-    def at_state(self, record: bool) -> dict:
-        """Carry z and ds over a converged (sub)step; reaction derivatives if ``record``."""
+    def at_state(self, record: bool, base: Converged) -> dict:
+        """Carry z and ds over a converged (sub)step; reaction derivatives if ``record``.
+        ``base``: the converged state's residual, reactions (if ``record``) and history
+        update."""
         m = self.model
         m.newton.ensure_factorised()
         x = _compat.petsc_vec(m.u)
@@ -164,10 +180,11 @@ class PathSensitivities:
         # one-sided differences from the converged state (its residual, reactions and
         # state update are shared by every direction): 2 assemblies and 1 state update per
         # direction instead of 4 and 2; truncation error ~ the relative step, 1e-6
-        r0 = m.newton.assemble_residual(with_bcs=False).copy()
+        r0 = base.residual
         off = m.lift_off is not None and m.lift_off.trial_off
-        f0 = np.array(m.ends.reactions(r0, m.comm)) if record or off else None
-        g0 = state.evaluate() if state is not None else None
+        f0 = (np.array(base.reactions) if base.reactions is not None
+              else np.array(m.ends.reactions(r0, m.comm)) if record or off else None)
+        g0 = base.update
         if off:  # the top face moves with the parameters so that the force stays zero
             zw, dfz_dw = self._unit_top_shift(x, u0, r0, f0)
         for p, d in self.requests:

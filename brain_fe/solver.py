@@ -70,6 +70,11 @@ class NewtonSolver:
         self.A = fem_petsc.create_matrix(jacobian_form)
         self.b = fem_petsc.create_vector(residual_form)
         self.du = self.b.duplicate()
+        # the last residual assembled without lifting, before its Dirichlet rows were set
+        # (they hold the plate's reactions), and the solve it converged (-1: none)
+        self.b_free = self.b.duplicate()
+        self._free_kept = False
+        self._free_of = -1
         self.ksp = self._new_ksp()
         self._factorised = (-1, 0)  # (solve, iteration) the factorisation was made at
         self._state = self._iteration = 0
@@ -130,8 +135,23 @@ class NewtonSolver:
             _compat.apply_lifting(self.b, self.a, self.bcs, x, -1.0)
         self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         if with_bcs:
+            self._free_kept = not lift
+            if not lift:  # the residual itself: what a later :meth:`free_residual` returns
+                self.b.copy(self.b_free)
             _compat.set_bc(self.b, self.bcs, x, -1.0)
         return self.b
+
+    def free_residual(self):
+        """The residual at the current u without the Dirichlet rows set (the rows of the
+        reactions), in a vector of its own that no later assembly overwrites before the
+        next :meth:`solve`.  Right after a converged solve it is that solve's own last
+        residual when it was assembled without lifting (the same operations, so the same
+        bits), otherwise it is assembled now.  Call it only while u, the parameters and
+        the history are those the last solve converged at (or after :meth:`forget`)."""
+        if self._free_of != self._state:
+            self.assemble_residual(with_bcs=False).copy(self.b_free)
+            self._free_of = self._state
+        return self.b_free
 
     def factorise(self) -> None:
         """Assemble and factorise the Jacobian (Dirichlet rows = identity) at the current u."""
@@ -161,6 +181,7 @@ class NewtonSolver:
         """Drop the factorisation: the next solve factorises afresh, so that a run's
         results do not depend on the runs before it (bit for bit)."""
         self._factorised = (-1, 0)
+        self._free_of = -1  # u is about to change without a solve
 
     def ensure_factorised(self) -> None:
         """Make the factorisation belong to the current (converged) state.
@@ -180,6 +201,7 @@ class NewtonSolver:
         factorisation that does not reduce the residual is undone and made again with a
         fresh one, so the iteration never does worse than full Newton."""
         self._state += 1
+        self._free_of = -1
         x = _compat.petsc_vec(self.u)
         rep = NewtonReport(False, 0)
         r0 = prev = None
@@ -210,6 +232,7 @@ class NewtonSolver:
                 r0 = rnorm
             if rnorm <= self.atol or rnorm <= self.rtol * r0:
                 rep.converged, rep.iterations = True, it
+                self._free_of = self._state if self._free_kept else -1
                 return rep
             if it == self.max_iterations:
                 break

@@ -192,6 +192,53 @@ def test_lifting_once_per_step_changes_nothing(axi_glued, monkeypatch):
         assert lifts[0] >= 2 * solves
 
 
+def test_a_converged_state_is_evaluated_once(monkeypatch):
+    """At a converged (sub)step the residual (Newton's own last one when it was assembled
+    without lifting), the reactions and the history update are computed once and reused
+    by the path sensitivities, which perturb the state and restore it: each equals a fresh
+    evaluation at the state after the sensitivities, bit for bit, also in a run that
+    follows another one on the same model (a kept residual must not outlive its state)."""
+    from brain_fe import geometry
+    from brain_fe.model import ForwardModel
+    from brain_fe.protocols import compression_tension, torsion
+    from brain_fe.sensitivities import DirectSensitivities, PathSensitivities
+
+    counts = {"kept": 0, "fresh": 0, "restored": 0}
+
+    def at_state(real):
+        def checked(self, record, base):
+            m = self.model
+            n = m.newton
+            kept = n._free_of == n._state
+            out = real(self, record, base)
+            r = n.assemble_residual(with_bcs=False)  # afresh, after the perturbations
+            if base.residual is not None:
+                d = base.residual.copy()
+                d.axpy(-1.0, r)
+                assert d.norm(0) == 0.0  # max norm: bit for bit
+                counts["kept" if kept else "fresh"] += 1
+            if base.reactions is not None:
+                assert m.ends.reactions(r, m.comm) == base.reactions
+            if base.update is not None:
+                np.testing.assert_array_equal(m.state.evaluate(), base.update)
+                counts["restored"] += 1
+            return out
+        return checked
+
+    for cls in (DirectSensitivities, PathSensitivities):
+        monkeypatch.setattr(cls, "at_state", at_state(cls.at_state))
+    g = geometry.axisymmetric(refinement=1, comm=MPI.COMM_SELF)
+    elastic, maxwell = ForwardModel(g), ForwardModel(g, maxwell=1)
+    p = _params(nu0=0.49, kappa=None)
+    pv = _params(nu0=0.49, kappa=None, beta=(0.4,), tau_s=(5.0,))
+    for m, q in ((elastic, p), (maxwell, pv)):
+        for prot in (compression_tension(0.15), torsion(0.30)):
+            m.run(prot, q)  # without sensitivities, then with them after it
+            res = m.run(prot, q, sensitivities=True)
+            assert np.abs(res.iloc[1:, 4:].to_numpy(float)).min() > 0
+    assert counts["kept"] > 10 * counts["fresh"] and counts["restored"] > 50
+
+
 def test_unloading_returns_to_the_loading_curve(axi_glued):
     """Hyperelastic: unloading retraces loading (to 1e-8 relative) and ends force-free."""
     from brain_fe.protocols import compression_tension, torsion
