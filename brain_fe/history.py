@@ -50,9 +50,6 @@ class HistoryState:
         out[self.index] = values
         return out
 
-    def update(self) -> None:
-        self.scatter(self.evaluate())
-
 
 def history_residual(material, geometry, u, v, state: HistoryState, p, dt):
     """int (1/2 S : dC + U'(J) dJ) w dx with the material's history stress S; sets the
