@@ -73,7 +73,6 @@ class NewtonSolver:
         # the last residual assembled without lifting, before its Dirichlet rows were set
         # (they hold the plate's reactions), and the solve it converged (-1: none)
         self.b_free = self.b.duplicate()
-        self._free_kept = False
         self._free_of = -1
         self.ksp = self._new_ksp()
         self._factorised = (-1, 0)  # (solve, iteration) the factorisation was made at
@@ -135,7 +134,6 @@ class NewtonSolver:
             _compat.apply_lifting(self.b, self.a, self.bcs, x, -1.0)
         self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         if with_bcs:
-            self._free_kept = not lift
             if not lift:  # the residual itself: what a later :meth:`free_residual` returns
                 self.b.copy(self.b_free)
             _compat.set_bc(self.b, self.bcs, x, -1.0)
@@ -232,7 +230,8 @@ class NewtonSolver:
                 r0 = rnorm
             if rnorm <= self.atol or rnorm <= self.rtol * r0:
                 rep.converged, rep.iterations = True, it
-                self._free_of = self._state if self._free_kept else -1
+                # b was assembled without lifting where u met the Dirichlet values
+                self._free_of = self._state if meets else -1
                 return rep
             if it == self.max_iterations:
                 break
