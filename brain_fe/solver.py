@@ -26,11 +26,20 @@ class NewtonReport:
     reason: str = ""
 
 
-# MUMPS (with pivoting) on any number of ranks.  PETSc's own LU factorised the small 2D
-# systems on one rank ~15 % faster, but it does not pivot (a viscoelastic run with holds
-# stopped with a zero pivot, KSP reason -11) and has no useful fill-reducing ordering in
-# 3D (a refinement-2 cylinder took minutes per factorisation instead of about a second).
+# MUMPS (with pivoting) on any number of ranks and for large systems.  Small systems on
+# one rank (the diagnosis's axisymmetric models: ~300 dofs at its working refinement 1,
+# ~1100 at the correction's 2, ~2300 at the generator's 3) are factorised by PETSc's own
+# LU in a nested-dissection ordering (:data:`SMALL_SOLVER`, :data:`SMALL_ORDERING`):
+# MUMPS's fixed cost per call dominates there (measured at 297 dofs: factorisation 0.81
+# against 0.24 ms, back-substitution 0.143 against 0.012 ms; at 2325 dofs 10.9 against
+# 9.3 and 0.88 against 0.44 ms; BENCHMARKS.md).  That LU does not pivot: a factorisation
+# that meets a zero pivot (KSP reason -11; a viscoelastic run with holds did) is made
+# again by MUMPS, for that matrix only.  Above :data:`SMALL_MAX_DOFS` its fill grows fast
+# (a 3D cylinder of 11 442 dofs: 1.7 s against MUMPS's 0.13 s per factorisation).
 DIRECT_SOLVER = "mumps"
+SMALL_SOLVER, SMALL_ORDERING = "petsc", "nd"
+SMALL_MAX_DOFS = 3000
+KSP_DIVERGED_PC_FAILED = -11
 # MUMPS sizes its workspace from the first (symbolic) analysis, which a solver keeps for
 # every later factorisation; pivoting on a harder matrix of a later run can need more
 # (its error -9, a failed linear solve, KSP reason -11), so that whether a solve succeeds
@@ -74,21 +83,27 @@ class NewtonSolver:
         # (they hold the plate's reactions), and the solve it converged (-1: none)
         self.b_free = self.b.duplicate()
         self._free_of = -1
-        self.ksp = self._new_ksp()
+        n = self.A.getSize()[0]
+        self.small = comm.size == 1 and n <= SMALL_MAX_DOFS  # PETSc's LU, MUMPS if it fails
+        self._primary = self.ksp = self._new_ksp(SMALL_SOLVER if self.small else DIRECT_SOLVER)
+        self._pivoting = None  # the MUMPS solver of a small system's zero pivots (made once)
         self._factorised = (-1, 0)  # (solve, iteration) the factorisation was made at
         self._state = self._iteration = 0
         self.factorisations = 0
         self.rebuilds = 0  # linear solvers made afresh after a failed solve
+        self.pivoted = 0  # factorisations of a small system made again by MUMPS
 
-    def _new_ksp(self):
-        """LU by :data:`DIRECT_SOLVER` on ``self.A``, its analysis made at the next set-up."""
+    def _new_ksp(self, solver: str = DIRECT_SOLVER):
+        """LU by ``solver`` on ``self.A``, its analysis made at the next set-up."""
         ksp = PETSc.KSP().create(self.comm)
         ksp.setType("preonly")
         pc = ksp.getPC()
         pc.setType("lu")
-        pc.setFactorSolverType(DIRECT_SOLVER)
-        if self.comm.size == 1:  # where the diagnosis runs its models; distributed, DOLFINx
-            # 0.9's MUMPS failed a Maxwell run with it (KSP -11): the default stays there
+        pc.setFactorSolverType(solver)
+        if solver == SMALL_SOLVER:
+            pc.setFactorOrdering(SMALL_ORDERING)
+        elif self.comm.size == 1:  # where the diagnosis runs its models; distributed,
+            # DOLFINx 0.9's MUMPS failed a Maxwell run with it (KSP -11): the default there
             ksp.setOptionsPrefix(SERIAL_PREFIX)  # one value for every such solver
             PETSc.Options()[f"{SERIAL_PREFIX}mat_mumps_icntl_14"] = MUMPS_WORKSPACE_PERCENT
             ksp.setFromOptions()  # read by the factor matrix when it is created
@@ -96,7 +111,9 @@ class NewtonSolver:
         return ksp
 
     def linear_solve(self, b, x) -> int:
-        """x from the current factorisation and right-hand side b.  A solve that fails
+        """x from the current factorisation and right-hand side b.  A small system whose
+        factorisation met a zero pivot (PETSc's LU does not pivot) is factorised again by
+        MUMPS and solved by it until the next factorisation.  A solve that fails
         because MUMPS's workspace, sized at the solver's first analysis, is too small for
         this matrix's pivoting (:data:`MUMPS_WORKSPACE_ERRORS`) is made once more with a
         solver analysed afresh at the Jacobian of the current u; any other failure (a
@@ -104,14 +121,29 @@ class NewtonSolver:
         step to be cut back.  Returns the KSP's converged reason (< 0: failed)."""
         self.ksp.solve(b, x)
         reason = self.ksp.getConvergedReason()
+        if reason == KSP_DIVERGED_PC_FAILED and self.small and self.ksp is self._primary:
+            log.debug("zero pivot in the LU of a small system: factorised again by MUMPS")
+            if self._pivoting is None:
+                self._pivoting = self._new_ksp()
+            self.ksp = self._pivoting
+            self.ksp.setOperators(self.A)
+            self.ksp.setUp()
+            self.pivoted += 1
+            self.ksp.solve(b, x)
+            reason = self.ksp.getConvergedReason()
         if reason >= 0 or self._mumps_error()[0] not in MUMPS_WORKSPACE_ERRORS:
             return reason
         log.warning("linear solver failed (%d%s): analysing afresh and solving again", reason,
                     self._factor_error())
+        fresh = self._new_ksp()
+        if self.ksp is self._primary:
+            self._primary = fresh
+        else:
+            self._pivoting = fresh
         self.ksp.destroy()
-        self.ksp = self._new_ksp()
+        self.ksp = fresh
         self.rebuilds += 1
-        self.factorise()
+        self.factorise(self.ksp)
         self.ksp.solve(b, x)
         return self.ksp.getConvergedReason()
 
@@ -151,11 +183,13 @@ class NewtonSolver:
             self._free_of = self._state
         return self.b_free
 
-    def factorise(self) -> None:
-        """Assemble and factorise the Jacobian (Dirichlet rows = identity) at the current u."""
+    def factorise(self, ksp=None) -> None:
+        """Assemble and factorise the Jacobian (Dirichlet rows = identity) at the current u,
+        by the system's own solver (``ksp``: by that one)."""
         self.A.zeroEntries()
         fem_petsc.assemble_matrix(self.A, self.a, bcs=self.bcs)
         self.A.assemble()
+        self.ksp = self._primary if ksp is None else ksp
         self.ksp.setOperators(self.A)
         self.ksp.setUp()
         self._factorised = (self._state, self._iteration)

@@ -125,41 +125,113 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
 
     p = _params(nu0=0.49, kappa=None)
     prot = compression_tension(0.15)
-    ref = axi_glued.run(prot, p)
-    n0 = axi_glued.newton.rebuilds
-    axi_glued.newton.ksp = FailsOnce(axi_glued.newton.ksp)
-    with caplog.at_level("WARNING", logger="brain_fe.solver"):
-        df = axi_glued.run(prot, p)
-    assert axi_glued.newton.rebuilds == n0 + 1
-    assert not isinstance(axi_glued.newton.ksp, FailsOnce)
-    assert "analysing afresh" in caplog.text and "INFOG(1) = -9" in caplog.text
-    a, b = ref.nominal_stress_kPa.to_numpy(), df.nominal_stress_kPa.to_numpy()
-    assert len(a) == len(b)
-    assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
-    # any other failure (a singular Jacobian, INFOG(1) = -10) is not solved again: the
-    # load step is cut back, as before
-    Factor.getMumpsInfog = lambda self, i: {1: -10, 2: 77}[i]
-    axi_glued.newton.ksp = FailsOnce(axi_glued.newton.ksp)
-    with pytest.raises(ConvergenceError, match=r"INFOG\(1\) = -10"):
-        axi_glued.run(prot, p)
-    assert axi_glued.newton.rebuilds == n0 + 1
-    axi_glued.newton.ksp = axi_glued.newton.ksp.ksp
-    axi_glued.newton.forget()
-    # a sensitivity's tangent solve that fails again after the fresh analysis raises (the
-    # model's failure, which the diagnosis reports) instead of returning a wrong z
-    Factor.getMumpsInfog = lambda self, i: {1: -9, 2: 1234}[i]
+    newton = axi_glued.newton
+    # MUMPS as the system's own solver (as on several ranks or for a large system)
+    saved = newton.small, newton._primary
+    newton.small, newton._primary = False, newton._new_ksp()
+
+    def failing(ksp):
+        newton._primary = newton.ksp = FailsOnce(ksp)
+
+    try:
+        newton.forget()
+        ref = axi_glued.run(prot, p)
+        n0 = newton.rebuilds
+        failing(newton._primary)
+        with caplog.at_level("WARNING", logger="brain_fe.solver"):
+            df = axi_glued.run(prot, p)
+        assert newton.rebuilds == n0 + 1
+        assert not isinstance(newton.ksp, FailsOnce)
+        assert not isinstance(newton._primary, FailsOnce)
+        assert "analysing afresh" in caplog.text and "INFOG(1) = -9" in caplog.text
+        a, b = ref.nominal_stress_kPa.to_numpy(), df.nominal_stress_kPa.to_numpy()
+        assert len(a) == len(b)
+        assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
+        # any other failure (a singular Jacobian, INFOG(1) = -10) is not solved again: the
+        # load step is cut back, as before
+        Factor.getMumpsInfog = lambda self, i: {1: -10, 2: 77}[i]
+        failing(newton._primary)
+        with pytest.raises(ConvergenceError, match=r"INFOG\(1\) = -10"):
+            axi_glued.run(prot, p)
+        assert newton.rebuilds == n0 + 1
+        newton._primary = newton.ksp = newton._primary.ksp
+        newton.forget()
+        # a sensitivity's tangent solve that fails again after the fresh analysis raises
+        # (the model's failure, which the diagnosis reports) instead of returning a wrong z
+        Factor.getMumpsInfog = lambda self, i: {1: -9, 2: 1234}[i]
+        real_new_ksp = newton._new_ksp
+        newton._new_ksp = lambda *a: FailsOnce(real_new_ksp(*a))
+        failing(newton._primary)
+        x = newton.du.duplicate()
+        try:
+            with pytest.raises(ConvergenceError, match="tangent solve"):
+                newton.solve_tangent(newton.b, x)
+        finally:
+            del newton._new_ksp
+    finally:
+        newton.small, newton._primary = saved
+        newton.ksp = newton._primary
+        newton.forget()
+
+
+def test_a_zero_pivot_is_factorised_again_by_mumps(axi_glued):
+    """A small system on one rank is factorised by PETSc's own LU, which does not pivot; a
+    factorisation that meets a zero pivot (KSP reason -11) is made again by MUMPS for that
+    matrix only: the run reaches the states of one without it (to 1e-9 of the peak, both
+    converged to 1e-10 of the first residual), and the next factorisation is PETSc's again.
+    Both solvers agree on the same Jacobian to 1e-12."""
+    from brain_fe.protocols import torsion
 
     newton = axi_glued.newton
-    real_new_ksp = newton._new_ksp
-    newton._new_ksp = lambda: FailsOnce(real_new_ksp())
-    newton.ksp = FailsOnce(newton.ksp)
-    x = newton.du.duplicate()
+    if not newton.small:
+        pytest.skip("several ranks: MUMPS throughout")
+    assert newton._primary.getPC().getFactorSolverType() == "petsc"
+
+    class ZeroPivotOnce:  # the first solve reported as PETSc's LU reports a zero pivot
+        def __init__(self, ksp):
+            self.ksp, self.reason = ksp, None
+
+        def solve(self, b, x):
+            if self.reason is None:
+                self.reason = -11
+                x.set(np.inf)
+            else:
+                self.reason = 0
+                self.ksp.solve(b, x)
+
+        def getConvergedReason(self):
+            return -11 if self.reason == -11 else self.ksp.getConvergedReason()
+
+        def __getattr__(self, name):
+            return getattr(self.ksp, name)
+
+    p = _params(nu0=0.49, kappa=None)
+    prot = torsion(0.30)
+    newton.forget()
+    ref = axi_glued.run(prot, p)
+    n0, f0 = newton.pivoted, newton.factorisations
+    wrapped = newton._primary = newton.ksp = ZeroPivotOnce(newton._primary)
     try:
-        with pytest.raises(ConvergenceError, match="tangent solve"):
-            newton.solve_tangent(newton.b, x)
+        df = axi_glued.run(prot, p)
+        assert newton.pivoted == n0 + 1
+        assert newton._pivoting.getPC().getFactorSolverType() == "mumps"
+        assert newton.ksp is newton._primary  # later factorisations: PETSc's LU again
+        assert newton.factorisations - f0 >= 2
+        for col in ("torque_mNmm", "axial_force_mN"):
+            a, b = ref[col].to_numpy(), df[col].to_numpy()
+            assert len(a) == len(b)
+            assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
+        # the same Jacobian solved by either: the same answer to rounding
+        x1, x2 = newton.du.duplicate(), newton.du.duplicate()
+        newton.b.setRandom()
+        wrapped.ksp.solve(newton.b, x1)
+        newton._pivoting.setOperators(newton.A)
+        newton._pivoting.setUp()
+        newton._pivoting.solve(newton.b, x2)
+        x2.axpy(-1.0, x1)
+        assert x2.norm() <= 1e-12 * x1.norm()
     finally:
-        del newton._new_ksp
-        newton.ksp = real_new_ksp()
+        newton._primary = newton.ksp = wrapped.ksp
         newton.forget()
 
 
