@@ -34,11 +34,18 @@ class NewtonReport:
 # against 0.24 ms, back-substitution 0.143 against 0.012 ms; at 2325 dofs 10.9 against
 # 9.3 and 0.88 against 0.44 ms; BENCHMARKS.md).  That LU does not pivot: a factorisation
 # that meets a zero pivot (KSP reason -11; a viscoelastic run with holds did) is made
-# again by MUMPS, for that matrix only.  Above :data:`SMALL_MAX_DOFS` its fill grows fast
-# (a 3D cylinder of 11 442 dofs: 1.7 s against MUMPS's 0.13 s per factorisation).
+# again by MUMPS, for that matrix only; so is one whose solution is not a solution to
+# the rounding of a stable LU (normwise backward error above :data:`SMALL_BACKWARD_ERROR`,
+# one product with the matrix per solve): without pivoting the elimination can grow, and
+# on a Jacobian with entries that are not finite (assembled at a diverged iterate) it
+# returns NaN as "converged" where MUMPS reports a failure (the closed benchmark's case011:
+# a Mullins truth that MUMPS's failure and the step cut-back got past).  Above
+# :data:`SMALL_MAX_DOFS` its fill grows fast (a 3D cylinder of 11 442 dofs: 1.7 s against
+# MUMPS's 0.13 s per factorisation).
 DIRECT_SOLVER = "mumps"
 SMALL_SOLVER, SMALL_ORDERING = "petsc", "nd"
 SMALL_MAX_DOFS = 3000
+SMALL_BACKWARD_ERROR = 1e-10  # stable LU: ~1e-17 measured
 KSP_DIVERGED_PC_FAILED = -11
 # MUMPS sizes its workspace from the first (symbolic) analysis, which a solver keeps for
 # every later factorisation; pivoting on a harder matrix of a later run can need more
@@ -87,6 +94,8 @@ class NewtonSolver:
         self.small = comm.size == 1 and n <= SMALL_MAX_DOFS  # PETSc's LU, MUMPS if it fails
         self._primary = self.ksp = self._new_ksp(SMALL_SOLVER if self.small else DIRECT_SOLVER)
         self._pivoting = None  # the MUMPS solver of a small system's zero pivots (made once)
+        self._a_norm = np.inf  # infinity norm of the factorised Jacobian
+        self._check = self.b.duplicate()
         self._factorised = (-1, 0)  # (solve, iteration) the factorisation was made at
         self._state = self._iteration = 0
         self.factorisations = 0
@@ -112,8 +121,9 @@ class NewtonSolver:
 
     def linear_solve(self, b, x) -> int:
         """x from the current factorisation and right-hand side b.  A small system whose
-        factorisation met a zero pivot (PETSc's LU does not pivot) is factorised again by
-        MUMPS and solved by it until the next factorisation.  A solve that fails
+        factorisation met a zero pivot (PETSc's LU does not pivot), or whose solution is
+        not one (:meth:`_solves`), is factorised again by MUMPS and solved by it until the
+        next factorisation.  A solve that fails
         because MUMPS's workspace, sized at the solver's first analysis, is too small for
         this matrix's pivoting (:data:`MUMPS_WORKSPACE_ERRORS`) is made once more with a
         solver analysed afresh at the Jacobian of the current u; any other failure (a
@@ -121,8 +131,11 @@ class NewtonSolver:
         step to be cut back.  Returns the KSP's converged reason (< 0: failed)."""
         self.ksp.solve(b, x)
         reason = self.ksp.getConvergedReason()
-        if reason == KSP_DIVERGED_PC_FAILED and self.small and self.ksp is self._primary:
-            log.debug("zero pivot in the LU of a small system: factorised again by MUMPS")
+        if (self.small and self.ksp is self._primary
+                and (reason == KSP_DIVERGED_PC_FAILED
+                     or (reason >= 0 and not self._solves(b, x)))):
+            log.debug("LU of a small system failed (%d) or inaccurate: factorised again by "
+                      "MUMPS", reason)
             if self._pivoting is None:
                 self._pivoting = self._new_ksp()
             self.ksp = self._pivoting
@@ -146,6 +159,16 @@ class NewtonSolver:
         self.factorise(self.ksp)
         self.ksp.solve(b, x)
         return self.ksp.getConvergedReason()
+
+    def _solves(self, b, x) -> bool:
+        """Whether x solves A x = b to a normwise backward error of at most
+        :data:`SMALL_BACKWARD_ERROR` (infinity norms; False when anything is not finite)."""
+        r = self._check
+        self.A.mult(x, r)
+        r.axpy(-1.0, b)
+        inf = PETSc.NormType.INFINITY
+        scale = self._a_norm * x.norm(inf) + b.norm(inf)
+        return bool(np.isfinite(scale) and r.norm(inf) <= SMALL_BACKWARD_ERROR * scale)
 
     def solve_tangent(self, b, x) -> None:
         """x = K^-1 b with the factorisation of the converged state (the sensitivities'
@@ -189,6 +212,7 @@ class NewtonSolver:
         self.A.zeroEntries()
         fem_petsc.assemble_matrix(self.A, self.a, bcs=self.bcs)
         self.A.assemble()
+        self._a_norm = self.A.norm(PETSc.NormType.INFINITY) if self.small else np.inf
         self.ksp = self._primary if ksp is None else ksp
         self.ksp.setOperators(self.A)
         self.ksp.setUp()
@@ -259,7 +283,7 @@ class NewtonSolver:
             rep.residuals.append(rnorm)
             if not np.isfinite(rnorm):
                 rep.reason = "residual is not finite"
-                return rep
+                return self._failed(rep)
             if r0 is None:
                 r0 = rnorm
             if rnorm <= self.atol or rnorm <= self.rtol * r0:
@@ -277,11 +301,18 @@ class NewtonSolver:
             reason = self.linear_solve(b, self.du)  # may factorise afresh
             if reason < 0:
                 rep.reason = f"linear solver failed ({reason}{self._factor_error()})"
-                return rep
+                return self._failed(rep)
             stale_step = self._factorised != (self._state, it)
             x.axpy(-1.0, self.du)
             x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
             before, meets = meets, serial
         rep.iterations = self.max_iterations
         rep.reason = f"no convergence in {self.max_iterations} iterations (|r| = {rnorm:.3e})"
+        return self._failed(rep)
+
+    def _failed(self, rep: NewtonReport) -> NewtonReport:
+        """A failed solve drops its factorisation: the step cut back from the converged
+        state factorises afresh there instead of reusing one that failed (every one of
+        the cut-backs did, so that a failed factorisation failed the whole step)."""
+        self._factorised = (-1, 0)
         return rep

@@ -176,10 +176,11 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
 
 def test_a_zero_pivot_is_factorised_again_by_mumps(axi_glued):
     """A small system on one rank is factorised by PETSc's own LU, which does not pivot; a
-    factorisation that meets a zero pivot (KSP reason -11) is made again by MUMPS for that
-    matrix only: the run reaches the states of one without it (to 1e-9 of the peak, both
-    converged to 1e-10 of the first residual), and the next factorisation is PETSc's again.
-    Both solvers agree on the same Jacobian to 1e-12."""
+    factorisation that meets a zero pivot (KSP reason -11), or whose solution is not one
+    (NaN reported as converged), is made again by MUMPS for that matrix only: the run
+    reaches the states of one without it (to 1e-9 of the peak, both converged to 1e-10 of
+    the first residual), and the next factorisation is PETSc's again. Both solvers agree
+    on the same Jacobian to 1e-12."""
     from brain_fe.protocols import torsion
 
     newton = axi_glued.newton
@@ -187,20 +188,21 @@ def test_a_zero_pivot_is_factorised_again_by_mumps(axi_glued):
         pytest.skip("several ranks: MUMPS throughout")
     assert newton._primary.getPC().getFactorSolverType() == "petsc"
 
-    class ZeroPivotOnce:  # the first solve reported as PETSc's LU reports a zero pivot
-        def __init__(self, ksp):
-            self.ksp, self.reason = ksp, None
+    class FailsOnce:  # the first solve fails as PETSc's LU can: a zero pivot (KSP reason
+        # -11), or NaN reported as converged (a Jacobian with entries that are not finite)
+        def __init__(self, ksp, reason):
+            self.ksp, self.first, self.reason = ksp, True, reason
 
         def solve(self, b, x):
-            if self.reason is None:
-                self.reason = -11
-                x.set(np.inf)
+            if self.first:
+                self.first = False
+                x.set(np.nan)
             else:
-                self.reason = 0
+                self.reason = None
                 self.ksp.solve(b, x)
 
         def getConvergedReason(self):
-            return -11 if self.reason == -11 else self.ksp.getConvergedReason()
+            return self.ksp.getConvergedReason() if self.reason is None else self.reason
 
         def __getattr__(self, name):
             return getattr(self.ksp, name)
@@ -209,10 +211,16 @@ def test_a_zero_pivot_is_factorised_again_by_mumps(axi_glued):
     prot = torsion(0.30)
     newton.forget()
     ref = axi_glued.run(prot, p)
+    for reason in (-11, 4):
+        _refactorised_by_mumps(axi_glued, newton, FailsOnce(newton._primary, reason), prot, p,
+                               ref)
+
+
+def _refactorised_by_mumps(model, newton, wrapped, prot, p, ref):
     n0, f0 = newton.pivoted, newton.factorisations
-    wrapped = newton._primary = newton.ksp = ZeroPivotOnce(newton._primary)
+    newton._primary = newton.ksp = wrapped
     try:
-        df = axi_glued.run(prot, p)
+        df = model.run(prot, p)
         assert newton.pivoted == n0 + 1
         assert newton._pivoting.getPC().getFactorSolverType() == "mumps"
         assert newton.ksp is newton._primary  # later factorisations: PETSc's LU again
@@ -232,6 +240,67 @@ def test_a_zero_pivot_is_factorised_again_by_mumps(axi_glued):
         assert x2.norm() <= 1e-12 * x1.norm()
     finally:
         newton._primary = newton.ksp = wrapped.ksp
+        newton.forget()
+
+
+def test_a_failed_factorisation_is_not_reused_after_the_cut_back(axi_glued):
+    """A linear solve that fails (here a factorisation whose every solve fails, as a
+    singular Jacobian's does: MUMPS INFOG(1) = -10) fails its Newton solve, and the step
+    cut back from the converged state factorises afresh instead of reusing it (before,
+    every cut-back reused it and the whole step failed): the run reaches the states of one
+    without the failure (to 1e-9 of the peak)."""
+    from brain_fe.protocols import compression_tension
+
+    class Factor:
+        def getMumpsInfog(self, i):
+            return {1: -10, 2: 77}[i]
+
+    class PC:
+        def getFactorMatrix(self):
+            return Factor()
+
+    class BrokenFactorisation:  # the next factorisation fails every solve made with it
+        def __init__(self, ksp):
+            self.ksp, self.broken, self.failures = ksp, None, 0
+
+        def setUp(self):
+            self.broken = self.broken is None  # the first factorisation only
+            self.ksp.setUp()
+
+        def solve(self, b, x):
+            if self.broken:
+                self.failures += 1
+                x.set(np.nan)
+            else:
+                self.ksp.solve(b, x)
+
+        def getConvergedReason(self):
+            return -11 if self.broken else self.ksp.getConvergedReason()
+
+        def getPC(self):
+            return PC() if self.broken else self.ksp.getPC()
+
+        def __getattr__(self, name):
+            return getattr(self.ksp, name)
+
+    newton = axi_glued.newton
+    p = _params(nu0=0.49, kappa=None)
+    prot = compression_tension(0.15)
+    newton.forget()
+    ref = axi_glued.run(prot, p)
+    saved = newton.small, newton._primary
+    wrapped = BrokenFactorisation(newton._primary)
+    newton.small = False  # no fall-back to MUMPS: the failure stands
+    newton._primary = newton.ksp = wrapped
+    try:
+        df = axi_glued.run(prot, p)
+        assert wrapped.failures == 1
+        a, b = ref.nominal_stress_kPa.to_numpy(), df.nominal_stress_kPa.to_numpy()
+        assert len(a) == len(b)
+        assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
+    finally:
+        newton.small, newton._primary = saved
+        newton.ksp = newton._primary
         newton.forget()
 
 
