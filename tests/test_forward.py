@@ -92,6 +92,20 @@ def test_reused_factorisations_change_nothing(axi_glued):
         assert counts[1] <= counts[0] / 2
 
 
+class _MumpsReport:
+    """Stands in for a KSP's PC and its factor matrix: MUMPS's INFOG(1), INFOG(2) as the
+    dict ``codes`` holds them when read (a test may change it between runs)."""
+
+    def __init__(self, codes: dict):
+        self.codes = codes
+
+    def getFactorMatrix(self):
+        return self
+
+    def getMumpsInfog(self, i):
+        return self.codes[i]
+
+
 def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, caplog):
     """A linear solve that fails (here: reported failed once, as MUMPS does when the
     workspace of its first analysis is too small for a later matrix, INFOG(1) = -9) is
@@ -102,13 +116,7 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
     from brain_fe.protocols import compression_tension
     from brain_fe.solver import ConvergenceError
 
-    class Factor:  # MUMPS's report of a workspace too small
-        def getMumpsInfog(self, i):
-            return {1: -9, 2: 1234}[i]
-
-    class PC:
-        def getFactorMatrix(self):
-            return Factor()
+    codes = {1: -9, 2: 1234}  # MUMPS's report of a workspace too small
 
     class FailsOnce:  # the real solver's answer, reported as a failed factorisation
         def __init__(self, ksp):
@@ -118,7 +126,7 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
             return -11  # KSP_DIVERGED_PC_FAILED
 
         def getPC(self):
-            return PC()
+            return _MumpsReport(codes)
 
         def __getattr__(self, name):
             return getattr(self.ksp, name)
@@ -149,7 +157,7 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
         assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
         # any other failure (a singular Jacobian, INFOG(1) = -10) is not solved again: the
         # load step is cut back, as before
-        Factor.getMumpsInfog = lambda self, i: {1: -10, 2: 77}[i]
+        codes.update({1: -10, 2: 77})
         failing(newton._primary)
         with pytest.raises(ConvergenceError, match=r"INFOG\(1\) = -10"):
             axi_glued.run(prot, p)
@@ -158,7 +166,7 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
         newton.forget()
         # a sensitivity's tangent solve that fails again after the fresh analysis raises
         # (the model's failure, which the diagnosis reports) instead of returning a wrong z
-        Factor.getMumpsInfog = lambda self, i: {1: -9, 2: 1234}[i]
+        codes.update({1: -9, 2: 1234})
         real_new_ksp = newton._new_ksp
         newton._new_ksp = lambda *a: FailsOnce(real_new_ksp(*a))
         failing(newton._primary)
@@ -251,14 +259,6 @@ def test_a_failed_factorisation_is_not_reused_after_the_cut_back(axi_glued):
     without the failure (to 1e-9 of the peak)."""
     from brain_fe.protocols import compression_tension
 
-    class Factor:
-        def getMumpsInfog(self, i):
-            return {1: -10, 2: 77}[i]
-
-    class PC:
-        def getFactorMatrix(self):
-            return Factor()
-
     class BrokenFactorisation:  # the next factorisation fails every solve made with it
         def __init__(self, ksp):
             self.ksp, self.broken, self.failures = ksp, None, 0
@@ -278,7 +278,7 @@ def test_a_failed_factorisation_is_not_reused_after_the_cut_back(axi_glued):
             return -11 if self.broken else self.ksp.getConvergedReason()
 
         def getPC(self):
-            return PC() if self.broken else self.ksp.getPC()
+            return _MumpsReport({1: -10, 2: 77}) if self.broken else self.ksp.getPC()
 
         def __getattr__(self, name):
             return getattr(self.ksp, name)
