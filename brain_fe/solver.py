@@ -101,6 +101,8 @@ class NewtonSolver:
         self.factorisations = 0
         self.rebuilds = 0  # linear solvers made afresh after a failed solve
         self.pivoted = 0  # factorisations of a small system made again by MUMPS
+        self.renewed = 0  # MUMPS solvers replaced after a failed factorisation
+        self._failure = ""  # what the last failed linear solve reported
 
     def _new_ksp(self, solver: str = DIRECT_SOLVER):
         """LU by ``solver`` on ``self.A``, its analysis made at the next set-up."""
@@ -128,9 +130,9 @@ class NewtonSolver:
         this matrix's pivoting (:data:`MUMPS_WORKSPACE_ERRORS`) is made once more with a
         solver analysed afresh at the Jacobian of the current u; any other failure (a
         numerically singular Jacobian, INFOG(1) = -10) is returned as it is, for the load
-        step to be cut back.  Returns the KSP's converged reason (< 0: failed)."""
-        self.ksp.solve(b, x)
-        reason = self.ksp.getConvergedReason()
+        step to be cut back, and the MUMPS solver that failed is replaced (:meth:`_renew`).
+        Returns the KSP's converged reason (< 0: failed)."""
+        reason = self._solve_with(b, x)
         if (self.small and self.ksp is self._primary
                 and (reason == KSP_DIVERGED_PC_FAILED
                      or (reason >= 0 and not self._solves(b, x)))):
@@ -142,10 +144,11 @@ class NewtonSolver:
             self.ksp.setOperators(self.A)
             self.ksp.setUp()
             self.pivoted += 1
-            self.ksp.solve(b, x)
-            reason = self.ksp.getConvergedReason()
-        if reason >= 0 or self._mumps_error()[0] not in MUMPS_WORKSPACE_ERRORS:
+            reason = self._solve_with(b, x)
+        if reason >= 0:
             return reason
+        if self._mumps_error()[0] not in MUMPS_WORKSPACE_ERRORS:
+            return self._renew(reason)
         log.warning("linear solver failed (%d%s): analysing afresh and solving again", reason,
                     self._factor_error())
         fresh = self._new_ksp()
@@ -157,8 +160,42 @@ class NewtonSolver:
         self.ksp = fresh
         self.rebuilds += 1
         self.factorise(self.ksp)
-        self.ksp.solve(b, x)
+        reason = self._solve_with(b, x)
+        return reason if reason >= 0 else self._renew(reason)
+
+    def _solve_with(self, b, x) -> int:
+        """x from the current solver; its converged reason, :data:`KSP_DIVERGED_PC_FAILED`
+        where PETSc raises instead (kept for the message: :meth:`_factor_error`)."""
+        self._failure = ""
+        try:
+            self.ksp.solve(b, x)
+        except PETSc.Error as exc:
+            self._failure = f"; PETSc error {exc.ierr}"
+            log.debug("linear solve raised PETSc error %s", exc.ierr)
+            return KSP_DIVERGED_PC_FAILED
         return self.ksp.getConvergedReason()
+
+    def _renew(self, reason: int) -> int:
+        """After a failed solve: a MUMPS solver is replaced by a fresh one, analysed at its
+        next set-up.  PETSc 3.18's MUMPS interface never factorises again after a failed
+        factorisation (it takes INFOG(1) < 0 for a failed analysis and skips the numeric
+        factorisation, and the next solve raises MUMPS's error -3): a singular Jacobian,
+        or a zero pivot of a small system that MUMPS could not take either, then failed
+        every later run of the model, and the open benchmark's generator, which draws
+        such truths, lost a whole MPI rank to the exception.  Returns ``reason``."""
+        self._failure = self._failure or self._factor_error()
+        if self.ksp.getPC().getFactorSolverType() != "mumps":
+            return reason  # PETSc's own LU factorises the next matrix as usual
+        fresh = self._new_ksp()
+        if self.ksp is self._primary:
+            self._primary = fresh
+        elif self.ksp is self._pivoting:
+            self._pivoting = fresh
+        self.ksp.destroy()
+        self.ksp = fresh
+        self._factorised = (-1, 0)
+        self.renewed += 1
+        return reason
 
     def _solves(self, b, x) -> bool:
         """Whether x solves A x = b to a normwise backward error of at most
@@ -176,7 +213,7 @@ class NewtonSolver:
         reason = self.linear_solve(b, x)
         if reason < 0:
             raise ConvergenceError(f"tangent solve of the sensitivities failed ({reason}"
-                                   f"{self._factor_error()})")
+                                   f"{self._failure})")
 
     def assemble_residual(self, *, with_bcs: bool = True, lift: bool = True):
         """Residual vector; with ``with_bcs`` the Dirichlet rows hold -(g - u).  ``lift``:
@@ -300,7 +337,7 @@ class NewtonSolver:
             prev = rnorm
             reason = self.linear_solve(b, self.du)  # may factorise afresh
             if reason < 0:
-                rep.reason = f"linear solver failed ({reason}{self._factor_error()})"
+                rep.reason = f"linear solver failed ({reason}{self._failure})"
                 return self._failed(rep)
             stale_step = self._factorised != (self._state, it)
             x.axpy(-1.0, self.du)

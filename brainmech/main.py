@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import traceback
 from importlib.metadata import PackageNotFoundError, version
 
 from .commands import COMMANDS
@@ -73,6 +74,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("brainmech: interrupted", file=sys.stderr)
         return 130
+    except Exception:  # an internal error: its traceback, and under mpirun the whole run
+        # ends (the other ranks would wait for this one at their next collective call; an
+        # MPI rank of the open benchmark did, spinning, for the rest of a 2-hour run)
+        traceback.print_exc()
+        _abort_other_ranks(1)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

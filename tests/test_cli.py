@@ -95,3 +95,34 @@ def test_other_ranks_say_their_own_warnings_only():
         assert one.filter(r) and r.getMessage() == "[rank 1] fit of mullins failed"
         assert one.filter(rec(logging.ERROR))
     assert not one.filter(rec(logging.ERROR))
+
+
+def test_an_internal_error_on_one_rank_ends_the_whole_mpirun(tmp_path):
+    """Under ``mpirun -n 2`` an unexpected exception on one rank (here raised by rank 1
+    while rank 0 waits for it in a collective call, as a gather of results does) prints
+    its traceback and ends every rank with a non-zero exit, instead of leaving rank 0
+    waiting and rank 1 spinning in PETSc's finalisation for ever (an open benchmark run
+    lost a rank that way and could never have finished)."""
+    import subprocess
+    import sys
+
+    from test_sampling import _env
+
+    script = tmp_path / "fails_on_rank_1.py"
+    script.write_text(
+        "import sys\n"
+        "from mpi4py import MPI\n"
+        "import brainmech.commands.benchmark_diagnosis as bd\n"
+        "def run(args):\n"
+        "    if MPI.COMM_WORLD.rank == 1:\n"
+        "        raise RuntimeError('an internal error on rank 1')\n"
+        "    MPI.COMM_WORLD.Barrier()\n"
+        "    return 0\n"
+        "bd.run = run\n"
+        "from brainmech.main import main\n"
+        "sys.exit(main(['benchmark-diagnosis', '--cases', '1', '--out', 'x']))\n")
+    r = subprocess.run(["mpirun", "-n", "2", sys.executable, str(script)], env=_env(),
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode != 0
+    assert "RuntimeError: an internal error on rank 1" in r.stderr
+    assert not (tmp_path / "x").exists()
