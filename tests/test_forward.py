@@ -1,5 +1,6 @@
 """Verification of the forward model (DESIGN.md section 3 references)."""
 
+import contextlib
 import math
 
 import numpy as np
@@ -92,6 +93,28 @@ def test_reused_factorisations_change_nothing(axi_glued):
         assert counts[1] <= counts[0] / 2
 
 
+@contextlib.contextmanager
+def _primary_solver(newton, ksp):
+    """``ksp`` as the Newton solver's own linear solver for the block, with no fall-back to
+    MUMPS (as on several ranks or for a large system); the fixture's restored after it."""
+    saved = newton.small, newton._primary
+    newton.small, newton._primary, newton.ksp = False, ksp, ksp
+    try:
+        yield
+    finally:
+        newton.small, newton._primary = saved
+        newton.ksp = newton._primary
+        newton.forget()
+
+
+def _same_states(ref, df, col: str = "nominal_stress_kPa") -> None:
+    """Two runs of a protocol reach the same states: ``col`` to 1e-9 of its peak (both
+    converged to 1e-10 of the first residual)."""
+    a, b = ref[col].to_numpy(), df[col].to_numpy()
+    assert len(a) == len(b)
+    assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
+
+
 class _MumpsReport:
     """Stands in for a KSP's PC and its factor matrix: MUMPS's INFOG(1), INFOG(2) as the
     dict ``codes`` holds them when read (a test may change it between runs)."""
@@ -138,14 +161,12 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
     p = _params(nu0=0.49, kappa=None)
     prot = compression_tension(0.15)
     newton = axi_glued.newton
-    # MUMPS as the system's own solver (as on several ranks or for a large system)
-    saved = newton.small, newton._primary
-    newton.small, newton._primary = False, newton._new_ksp()
 
     def failing(ksp):
         newton._primary = newton.ksp = FailsOnce(ksp)
 
-    try:
+    # MUMPS as the system's own solver (as on several ranks or for a large system)
+    with _primary_solver(newton, newton._new_ksp()):
         newton.forget()
         ref = axi_glued.run(prot, p)
         n0 = newton.rebuilds
@@ -156,9 +177,7 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
         assert not isinstance(newton.ksp, FailsOnce)
         assert not isinstance(newton._primary, FailsOnce)
         assert "analysing afresh" in caplog.text and "INFOG(1) = -9" in caplog.text
-        a, b = ref.nominal_stress_kPa.to_numpy(), df.nominal_stress_kPa.to_numpy()
-        assert len(a) == len(b)
-        assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
+        _same_states(ref, df)
         # any other failure (a singular Jacobian, INFOG(1) = -10) is not solved again: the
         # load step is cut back, with a fresh solver in place of the one that failed
         codes.update({1: -10, 2: 77})
@@ -170,8 +189,7 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
         assert "INFOG(1) = -10" in caplog.text and "cutting the step back" in caplog.text
         assert newton.rebuilds == n0 + 1 and newton.renewed == r0 + 1
         assert not isinstance(newton._primary, FailsOnce)
-        b = df.nominal_stress_kPa.to_numpy()
-        assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
+        _same_states(ref, df)
         newton.forget()
         # a sensitivity's tangent solve that fails again after the fresh analysis raises
         # (the model's failure, which the diagnosis reports) instead of returning a wrong z
@@ -185,10 +203,6 @@ def test_failed_linear_solve_is_made_again_with_a_fresh_analysis(axi_glued, capl
                 newton.solve_tangent(newton.b, x)
         finally:
             del newton._new_ksp
-    finally:
-        newton.small, newton._primary = saved
-        newton.ksp = newton._primary
-        newton.forget()
 
 
 def test_a_zero_pivot_is_factorised_again_by_mumps(axi_glued):
@@ -300,21 +314,12 @@ def test_a_failed_factorisation_is_not_reused_after_the_cut_back(axi_glued):
     prot = compression_tension(0.15)
     newton.forget()
     ref = axi_glued.run(prot, p)
-    saved = newton.small, newton._primary
     wrapped = BrokenFactorisation(newton._primary)
-    newton.small = False  # no fall-back to MUMPS: the failure stands
-    newton._primary = newton.ksp = wrapped
-    try:
+    with _primary_solver(newton, wrapped):  # no fall-back to MUMPS: the failure stands
         r0 = newton.renewed
         df = axi_glued.run(prot, p)
         assert wrapped.failures == 1 and newton.renewed == r0 + 1
-        a, b = ref.nominal_stress_kPa.to_numpy(), df.nominal_stress_kPa.to_numpy()
-        assert len(a) == len(b)
-        assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
-    finally:
-        newton.small, newton._primary = saved
-        newton.ksp = newton._primary
-        newton.forget()
+        _same_states(ref, df)
 
 
 def test_a_mumps_solver_that_failed_is_replaced(axi_glued):
@@ -332,9 +337,7 @@ def test_a_mumps_solver_that_failed_is_replaced(axi_glued):
     prot = compression_tension(0.15)
     newton.forget()
     ref = axi_glued.run(prot, p)
-    saved = newton.small, newton._primary
-    newton.small, newton._primary = False, newton._new_ksp()  # MUMPS, as for large systems
-    try:
+    with _primary_solver(newton, newton._new_ksp()):  # MUMPS, as for large systems
         failed = newton._primary
         newton.factorise()  # analysed at the Jacobian, then given one with a zero row
         newton.A.zeroRows([5], diag=0.0)
@@ -345,13 +348,7 @@ def test_a_mumps_solver_that_failed_is_replaced(axi_glued):
         assert newton.renewed == r0 + 1 and "INFOG(1) = -10" in newton._failure
         assert newton._primary is not failed and newton.ksp is newton._primary
         df = axi_glued.run(prot, p)
-        a, b = ref.nominal_stress_kPa.to_numpy(), df.nominal_stress_kPa.to_numpy()
-        assert len(a) == len(b)
-        assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(a))
-    finally:
-        newton.small, newton._primary = saved
-        newton.ksp = newton._primary
-        newton.forget()
+        _same_states(ref, df)
 
 
 def test_lifting_once_per_step_changes_nothing(axi_glued, monkeypatch):
