@@ -151,13 +151,7 @@ class NewtonSolver:
             return self._renew(reason)
         log.warning("linear solver failed (%d%s): analysing afresh and solving again", reason,
                     self._factor_error())
-        fresh = self._new_ksp()
-        if self.ksp is self._primary:
-            self._primary = fresh
-        else:
-            self._pivoting = fresh
-        self.ksp.destroy()
-        self.ksp = fresh
+        self._replace_ksp()
         self.rebuilds += 1
         self.factorise(self.ksp)
         reason = self._solve_with(b, x)
@@ -186,16 +180,21 @@ class NewtonSolver:
         self._failure = self._failure or self._factor_error()
         if self.ksp.getPC().getFactorSolverType() != "mumps":
             return reason  # PETSc's own LU factorises the next matrix as usual
-        fresh = self._new_ksp()
-        if self.ksp is self._primary:
-            self._primary = fresh
-        elif self.ksp is self._pivoting:
-            self._pivoting = fresh
-        self.ksp.destroy()
-        self.ksp = fresh
+        self._replace_ksp()
         self._factorised = (-1, 0)
         self.renewed += 1
         return reason
+
+    def _replace_ksp(self) -> None:
+        """The current solver (the primary or the pivoting one) destroyed and replaced by a
+        fresh MUMPS solver in its role, analysed at its next set-up."""
+        fresh = self._new_ksp()
+        if self.ksp is self._primary:
+            self._primary = fresh
+        else:
+            self._pivoting = fresh
+        self.ksp.destroy()
+        self.ksp = fresh
 
     def _solves(self, b, x) -> bool:
         """Whether x solves A x = b to a normwise backward error of at most
