@@ -16,15 +16,11 @@ largest value.
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
 import statistics
 import time
 
 import numpy as np
-from _machine import cpu_model
+from _machine import micro_arguments, write_result
 
 DEFAULT_FLAGS = ["-O2", "-g0"]  # DOLFINx's default cffi_extra_compile_args
 MATERIALS = {"maxwell": {"maxwell": 1}, "mullins": {"mullins": True},
@@ -72,11 +68,7 @@ def _per_call(evaluate, n: int, repeats: int) -> tuple[float, np.ndarray]:
 
 
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results"))
-    a = ap.parse_args()
-    os.makedirs(a.out, exist_ok=True)
+    a = micro_arguments()
     from dolfinx import fem
 
     from brain_fe import _compat, jit_cache
@@ -103,12 +95,8 @@ def main():
             print(f"{name:16s} k={k} {r['cells']:4d} cells  default {r['default_ms']:.3f} ms"
                   f"  project {r['project_ms']:.3f} ms  ratio {r['ratio']:.2f}"
                   f"  rel diff {r['rel_diff']:.1e}")
-    out = {"machine": {"cpu": cpu_model(), "python": platform.python_version()},
-           "repeats": a.repeats, "evaluations_per_block": 200, "rows": rows}
-    path = os.path.join(a.out, "history_update.json")
-    with open(path, "w") as fh:
-        json.dump(out, fh, indent=1)
-    print("wrote", path)
+    write_result(a.out, "history_update.json",
+                 {"repeats": a.repeats, "evaluations_per_block": 200, "rows": rows})
 
 
 if __name__ == "__main__":

@@ -14,15 +14,11 @@ the largest difference of its solution from MUMPS's relative to the solution's s
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
 import statistics
 import time
 
 import numpy as np
-from _machine import cpu_model
+from _machine import micro_arguments, write_result
 
 SOLVERS = [("mumps", None), ("petsc", "nd"), ("petsc", "rcm"), ("petsc", "qmd"),
            ("umfpack", None)]
@@ -79,11 +75,7 @@ def _time(A, solver, ordering, n_factor, n_solve, repeats):
 
 
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results"))
-    a = ap.parse_args()
-    os.makedirs(a.out, exist_ok=True)
+    a = micro_arguments()
     from brain_fe.solver import SMALL_MAX_DOFS
 
     rows = []
@@ -108,12 +100,8 @@ def main():
             print(f"{kind:12s} k={k} {n:6d} dofs {solver:8s} {str(ordering):5s} "
                   f"factorise {r['factorise_ms']:9.3f} ms  solve {r['solve_ms']:8.3f} ms  "
                   f"rel diff {r['rel_diff_from_mumps']:.1e}")
-    out = {"machine": {"cpu": cpu_model(), "python": platform.python_version()},
-           "repeats": a.repeats, "small_max_dofs": SMALL_MAX_DOFS, "rows": rows}
-    path = os.path.join(a.out, "lu.json")
-    with open(path, "w") as fh:
-        json.dump(out, fh, indent=1)
-    print("wrote", path)
+    write_result(a.out, "lu.json",
+                 {"repeats": a.repeats, "small_max_dofs": SMALL_MAX_DOFS, "rows": rows})
 
 
 if __name__ == "__main__":
