@@ -106,7 +106,7 @@ def test_an_internal_error_on_one_rank_ends_the_whole_mpirun(tmp_path):
     import subprocess
     import sys
 
-    from test_sampling import _env
+    from launch import child_env
 
     script = tmp_path / "fails_on_rank_1.py"
     script.write_text(
@@ -121,7 +121,7 @@ def test_an_internal_error_on_one_rank_ends_the_whole_mpirun(tmp_path):
         "bd.run = run\n"
         "from brainmech.main import main\n"
         "sys.exit(main(['benchmark-diagnosis', '--cases', '1', '--out', 'x']))\n")
-    r = subprocess.run(["mpirun", "-n", "2", sys.executable, str(script)], env=_env(),
+    r = subprocess.run(["mpirun", "-n", "2", sys.executable, str(script)], env=child_env(),
                        capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert r.returncode != 0
     assert "RuntimeError: an internal error on rank 1" in r.stderr

@@ -6,7 +6,6 @@ these tests is marked `mpi`: the parallel one launches `mpirun -n 2` itself.
 
 import json
 import math
-import os
 import shutil
 import signal
 import subprocess
@@ -16,6 +15,7 @@ import time
 import numpy as np
 import pandas as pd
 import pytest
+from launch import child_env
 from mpi4py import MPI
 
 from brain_fe import sampling, store
@@ -25,16 +25,6 @@ TESTS2 = "compression_tension,torsion:0.30"  # two protocols: enough, and fast
 COMPARE = [c for c in store.COLUMNS if c != "wall_time_s"]
 
 
-def _env():
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("OMPI_COMM_WORLD", "OMPI_MCA_ess", "PMIX_", "PMI_"))}
-    env.update(OMPI_ALLOW_RUN_AS_ROOT="1", OMPI_ALLOW_RUN_AS_ROOT_CONFIRM="1",
-               OMPI_MCA_rmaps_base_oversubscribe="1", OMP_NUM_THREADS="1",
-               PYTHONDONTWRITEBYTECODE="1")
-    env.setdefault("OMPI_MCA_btl", "self,vader")
-    return env
-
-
 def _cli(out, *extra, n=5, tests=TESTS2):
     return [sys.executable, "-m", "brainmech", "sample", "--n", str(n), "--seed", "7",
             "--refinement", "1", "--mu-range", "0.1,5", "--alpha-range", "-40,-2",
@@ -42,7 +32,7 @@ def _cli(out, *extra, n=5, tests=TESTS2):
 
 
 def _run(cmd, **kw):
-    return subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=300, **kw)
+    return subprocess.run(cmd, env=child_env(), capture_output=True, text=True, timeout=300, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -145,7 +135,7 @@ def test_sigkill_then_resume_stores_every_sample_once(serial_store, tmp_path):
     """Kill -9 after the first chunk appears; the re-run computes exactly the missing
     samples; every (sample, test) is stored exactly once; stale temp files are removed."""
     out = tmp_path / "killed"
-    proc = subprocess.Popen(_cli(out, n=6, tests=sampling.DEFAULT_TESTS), env=_env(),
+    proc = subprocess.Popen(_cli(out, n=6, tests=sampling.DEFAULT_TESTS), env=child_env(),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120
     try:
