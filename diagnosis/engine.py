@@ -84,7 +84,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-16"
+ENGINE_VERSION = "2026.11-open-world-17"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
@@ -194,7 +194,9 @@ class Diagnosis:
             "last_digits": self.last_digits,
             "ranking": self.ranking,
             "rounds": [{"from": "+".join(r.current) or "base", "added": r.added,
-                        "dropped": r.dropped, "table": r.table} for r in self.rounds],
+                        "dropped": r.dropped, "noise_dof": _finite(r.noise.nu_eff())
+                        if r.noise is not None else None, "table": r.table}
+                       for r in self.rounds],
             "ambiguous": self.ambiguous,
             "detection_limits": self.detection_limits,
             "masked": self.masked,
@@ -220,6 +222,11 @@ class Diagnosis:
             "elapsed_s": self.elapsed_s,
             "timings_s": self.timings,
         }
+
+
+def _finite(x: float) -> float | None:
+    """``x``, or None where it is infinite (JSON has no infinity)."""
+    return float(x) if math.isfinite(x) else None
 
 
 def _plain(d: dict) -> dict:
@@ -375,6 +382,7 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
     cands = {e: lib[e] for e in (effects or lib)
              if e not in in_model and compatible(e, in_model)}
     m = max(len(cands), 1)
+    nu = nm.nu_eff()  # the bar of the next round's F test under the final noise
     scales = design_scales(ctx.sim, ctx.obs, current.values)
     points = {e: design(lib[e], ctx.sim.nu0, scales) for e in cands
               if e in AT_DESIGN + PER_POINT + IN_COMPLIANCE}
@@ -391,7 +399,7 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
         try:
             return detection_limits(ctx.sim, current, parameter_names(lib, in_model), J,
                                     group, nm.whiten_jacobian,
-                                    lambda eff: ctx.needed(len(eff.names), m), pts,
+                                    lambda eff: ctx.needed(len(eff.names), m, nu), pts,
                                     {e: lib[e].names for e in named})
         except MODEL_FAILURES as exc:  # a note is not worth a failed diagnosis
             log.warning("detection limits at the final model: %s: %s",
@@ -595,7 +603,7 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list,
             continue
         k = len(ctx.lib[e].names)
         lrt = ctx.chi2(noise, without) - ctx.chi2(noise, current)
-        needed = ctx.needed(k, max(len(chosen), 1))
+        needed = ctx.needed(k, max(len(chosen), 1), noise.nu_eff())
         if rival is not None:
             lrt_rival = ctx.chi2(rival, without) - ctx.chi2(rival, current)
             if (lrt_rival < needed) != (lrt < needed):

@@ -154,6 +154,17 @@ def noise_dof(obs: pd.DataFrame, residual) -> np.ndarray:
     return _noise(obs, residual)[1]
 
 
+def nu_eff(obs: pd.DataFrame, dof: np.ndarray) -> float:
+    """Effective degrees of freedom of a noise estimated per series with ``dof`` (per row,
+    infinite where the noise is known): ``1 / nu = sum_s (n_s / n)^2 / nu_s`` over the
+    (curve, channel) series (as in :func:`diagnosis.locate.locate`)."""
+    n = len(obs)
+    dof = np.asarray(dof, float)
+    inv = sum((len(g) / n) ** 2 / float(dof[g.index[0]])
+              for _, g in obs.groupby(["curve", "channel"], sort=False))
+    return 1.0 / inv if inv > 0 else math.inf
+
+
 # --------------------------------------------------------------------------- noise model
 @dataclass(frozen=True)
 class ChannelNoise:
@@ -197,6 +208,11 @@ class NoiseModel:
         import scipy.linalg as sl
 
         return sl.cholesky(s.covariance(self.params[s.key]), lower=True)
+
+    def nu_eff(self) -> float:
+        """Effective degrees of freedom of the whole noise estimate (:func:`nu_eff`): the
+        denominator degrees of freedom of an F test of a misfit under this noise."""
+        return nu_eff(self.obs.reset_index(drop=True), self.dof)
 
     def whiten(self, r: np.ndarray) -> np.ndarray:
         import scipy.linalg as sl

@@ -33,6 +33,7 @@ import pandas as pd
 from scipy import stats
 
 from . import locate as loc
+from .noise import nu_eff
 from .series import neutral_of
 
 KNOTS = 5  # knots of the generic misfit per curve/channel/branch (plus the neutral value)
@@ -142,15 +143,6 @@ def systematic_basis(obs: pd.DataFrame, prediction: np.ndarray | None = None) ->
     return B
 
 
-def _nu_eff(obs: pd.DataFrame, dof: np.ndarray) -> float:
-    """Effective degrees of freedom of a noise estimated per series with ``dof`` (per
-    row): ``1 / nu = sum_s (n_s / n)^2 / nu_s`` (as in :func:`diagnosis.locate.locate`)."""
-    n = len(obs)
-    inv = sum((len(g) / n) ** 2 / float(dof[g.index[0]])
-              for _, g in obs.groupby(["curve", "channel"], sort=False))
-    return 1.0 / inv if inv > 0 else math.inf
-
-
 def _lrt(Bw: np.ndarray, z: np.ndarray, n: int, alpha: float, bic_margin: float,
          nu: float = math.inf) -> dict:
     """Gain of the columns ``Bw`` on the whitened residual ``z``: a chi-square test for a
@@ -175,7 +167,7 @@ def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 
     z = noise.whiten(np.asarray(residual, float))
     table = loc.locate(obs, z, 1.0, sigma_dof=noise.dof)
     located = loc.summary(table)["located"]
-    nu = _nu_eff(obs, np.asarray(noise.dof, float))
+    nu = nu_eff(obs, np.asarray(noise.dof, float))
     B, how = reproducible_basis(obs)
     rep = {"repeats": how, "gain": 0.0, "dof": 0, "p_value": 1.0, "significant": False}
     if B.shape[1]:

@@ -8,7 +8,12 @@ effects selected so far):
 2. the noise model (:mod:`diagnosis.noise`) is estimated from the residual of the best of
    these fits, the closest thing to pure noise, and every comparison of the round is made
    under it: with whitened residuals, chi2 = z.z, the likelihood-ratio statistic
-   chi2_current - chi2_candidate ~ chi2(k) and BIC = chi2 + k ln n;
+   LRT = chi2_current - chi2_candidate and BIC = chi2 + k ln n.  The noise was estimated
+   from these same recordings with nu effective degrees of freedom
+   (:meth:`NoiseModel.nu_eff`), so LRT / k ~ F(k, nu), not chi2(k) / k: on a short
+   recording (tens of points) a misfit that a noise level estimated too low makes look
+   large is not taken for an effect (the tests of what remains, :mod:`diagnosis.remaining`,
+   were F tests already); for hundreds of points the two agree;
 3. a candidate is *significant* when p < alpha / m (Bonferroni over the m candidates) and
    its BIC beats the current model's by more than the margin; the lowest-BIC significant one
    is added, and once the model holds two or more effects every one of them, the new one
@@ -52,10 +57,24 @@ BIC_MARGIN = 10.0  # and the BIC improvement it must bring
 
 
 def chi2_needed(k: int, m: int, n: int, alpha: float = ALPHA,
-                bic_margin: float = BIC_MARGIN) -> float:
+                bic_margin: float = BIC_MARGIN, nu: float = math.inf) -> float:
     """The chi-square reduction k extra parameters need to be significant among m
-    candidates with n observations: p < alpha / m and a BIC gain above the margin."""
-    return max(float(stats.chi2.isf(alpha / m, k)), k * math.log(n) + bic_margin)
+    candidates with n observations: p < alpha / m (:func:`lrt_p_value`, with the noise
+    estimated with ``nu`` degrees of freedom; infinite: known) and a BIC gain above the
+    margin."""
+    test = (k * float(stats.f.isf(alpha / m, k, nu)) if math.isfinite(nu)
+            else float(stats.chi2.isf(alpha / m, k)))
+    return max(test, k * math.log(n) + bic_margin)
+
+
+def lrt_p_value(lrt: float, k: int, nu: float = math.inf) -> float:
+    """p of a likelihood-ratio statistic ``lrt`` for k extra parameters, in units of a noise
+    estimated with ``nu`` degrees of freedom: F(k, nu) of lrt / k (chi2(k) of lrt when the
+    noise is known, ``nu`` infinite, the limit of the F test)."""
+    lrt = max(float(lrt), 0.0)
+    if math.isfinite(nu):
+        return float(stats.f.sf(lrt / k, k, nu))
+    return float(stats.chi2.sf(lrt, k))
 
 
 @dataclass
@@ -78,9 +97,12 @@ class Context:
         z = noise.whiten(f.residual(self.obs))
         return float(z @ z)
 
-    def needed(self, k: int, m: int) -> float:
-        """The chi-square reduction k extra parameters need to be significant."""
-        return chi2_needed(k, m, len(self.obs), self.alpha, self.bic_margin)
+    def needed(self, k: int, m: int, nu: float = math.inf) -> float:
+        """The chi-square reduction k extra parameters need to be significant under a
+        noise estimated with ``nu`` degrees of freedom (infinite: the chi-square bar, the
+        lower one, which the screen uses: it rules out only what could not pass even
+        with the noise known)."""
+        return chi2_needed(k, m, len(self.obs), self.alpha, self.bic_margin, nu)
 
 
 @dataclass
@@ -210,12 +232,13 @@ def compare(ctx: Context, rnd: Round, current: Fit, m: int, noise) -> list:
     """The round's table under ``noise``: chi2, LRT p, BIC and significance per fit."""
     c0 = ctx.chi2(noise, current)
     n = len(ctx.obs)
+    nu = noise.nu_eff()
     table = []
     for e, f in rnd.fits.items():
         k = len(ctx.lib[e].names)
         c1 = ctx.chi2(noise, f)
         lrt = c0 - c1
-        p = float(stats.chi2.sf(max(lrt, 0.0), k))
+        p = lrt_p_value(lrt, k, nu)
         dbic = (c1 + (current.k + k) * math.log(n)) - (c0 + current.k * math.log(n))
         table.append({"effect": e, "chi2": c1, "lrt": lrt, "p_value": p, "delta_bic": dbic,
                       "significant": bool(p < ctx.alpha / m and -dbic > ctx.bic_margin),
