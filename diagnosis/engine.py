@@ -194,7 +194,7 @@ class Diagnosis:
             "last_digits": self.last_digits,
             "ranking": self.ranking,
             "rounds": [{"from": "+".join(r.current) or "base", "added": r.added,
-                        "dropped": r.dropped, "noise_dof": _finite(r.noise.nu_eff())
+                        "dropped": r.dropped, "noise_dof": _finite(r.noise.nu_level())
                         if r.noise is not None else None, "table": r.table}
                        for r in self.rounds],
             "ambiguous": self.ambiguous,
@@ -382,7 +382,7 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
     cands = {e: lib[e] for e in (effects or lib)
              if e not in in_model and compatible(e, in_model)}
     m = max(len(cands), 1)
-    nu = nm.nu_eff()  # the bar of the next round's F test under the final noise
+    nu = nm.nu_level()  # the bar of the next round's F test under the final noise
     scales = design_scales(ctx.sim, ctx.obs, current.values)
     points = {e: design(lib[e], ctx.sim.nu0, scales) for e in cands
               if e in AT_DESIGN + PER_POINT + IN_COMPLIANCE}
@@ -603,7 +603,7 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list,
             continue
         k = len(ctx.lib[e].names)
         lrt = ctx.chi2(noise, without) - ctx.chi2(noise, current)
-        needed = ctx.needed(k, max(len(chosen), 1), noise.nu_eff())
+        needed = ctx.needed(k, max(len(chosen), 1), noise.nu_level())
         if rival is not None:
             lrt_rival = ctx.chi2(rival, without) - ctx.chi2(rival, current)
             if (lrt_rival < needed) != (lrt < needed):

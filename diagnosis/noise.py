@@ -190,9 +190,12 @@ class NoiseModel:
     standard normal under the model."""
 
     def __init__(self, obs: pd.DataFrame, series: dict[tuple, ChannelNoise],
-                 dof: np.ndarray | None = None, rivals: dict | None = None):
+                 dof: np.ndarray | None = None, rivals: dict | None = None,
+                 held: frozenset = frozenset()):
         self.obs = obs
         self.params = dict(series)
+        # the series whose white SD was stated (held, not estimated from the residual)
+        self.held = frozenset(held)
         # (curve, channel) -> (ChannelNoise, its -2 log L above the chosen one): another
         # optimum of the likelihood that the recordings do not rule out (within
         # ``NOISE_TIE``) with a slow part ``RIVAL_FACTOR`` times larger or smaller
@@ -209,10 +212,33 @@ class NoiseModel:
 
         return sl.cholesky(s.covariance(self.params[s.key]), lower=True)
 
-    def nu_eff(self) -> float:
-        """Effective degrees of freedom of the whole noise estimate (:func:`nu_eff`): the
-        denominator degrees of freedom of an F test of a misfit under this noise."""
-        return nu_eff(self.obs.reset_index(drop=True), self.dof)
+    def nu_level(self) -> float:
+        """Effective degrees of freedom of the noise *level* that whitened residuals are
+        measured in, for the likelihood-ratio test of an effect: :func:`nu_eff` with each
+        series' nu_s divided by f_s^2, f_s the share of its variance estimated from the
+        residual (1, or with a stated white SD the slow part's share slow^2 / (white^2 +
+        slow^2), so that a stated noise with no slow part is known: nu infinite).  The
+        variance of the estimated part scales as f_s^2 / nu_s (Satterthwaite)."""
+        obs = self.obs.reset_index(drop=True)
+        span = self._spans()
+        share = {}
+        for key, cn in self.params.items():
+            if key in self.held:
+                slow2 = _slow(cn, span.get(key, 0.0)) ** 2
+                total = cn.white**2 + slow2
+                share[key] = slow2 / total if total > 0 else 0.0
+        dof = self.dof.copy()
+        for s in self.series:
+            f = share.get(s.key, 1.0)
+            dof[s.rows] = dof[s.rows] / f**2 if f > 0 else np.inf
+        return nu_eff(obs, dof)
+
+    def _spans(self) -> dict:
+        """Per (curve, channel): the RMS time from the tare over its longest series [s]."""
+        span = {}
+        for s in self.series:
+            span[s.key] = max(span.get(s.key, 0.0), float(np.sqrt(np.mean(s.ramp**2))))
+        return span
 
     def whiten(self, r: np.ndarray) -> np.ndarray:
         import scipy.linalg as sl
@@ -252,7 +278,7 @@ class NoiseModel:
             return None
         return NoiseModel(self.obs, {**self.params,
                                      **{k: n for k, (n, _) in self.rivals.items()}},
-                          self.dof)
+                          self.dof, held=self.held)
 
     def describe_rivals(self) -> dict:
         """Per series with a rival: the -2 log L between the two and both slow SDs."""
@@ -266,9 +292,7 @@ class NoiseModel:
         """Per series: the parameters (``params``, default the model's own), and
         ``slow_sd``, the SD of its slow part (wander and drift together) as an RMS over the
         series' times, comparable with a stated instrument noise."""
-        span = {}
-        for s in self.series:
-            span[s.key] = max(span.get(s.key, 0.0), float(np.sqrt(np.mean(s.ramp**2))))
+        span = self._spans()
         return {f"{c}/{ch}": {"white": n.white, "correlated": n.corr,
                               "correlation_time_s": n.corr_s, "drift_per_s": n.drift,
                               "slow_sd": _slow(n, span.get((c, ch), 0.0))}
@@ -402,7 +426,8 @@ def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
     dof = np.empty(len(r))
     for s in series:
         dof[s.rows] = len(s.rows) - (0 if s.basis is None else s.basis.shape[1])
-    return NoiseModel(obs, params, dof, rivals)
+    held = {key for key in params if stated and key[1] in stated}
+    return NoiseModel(obs, params, dof, rivals, held=frozenset(held))
 
 
 def _slow(ch: ChannelNoise, span: float) -> float:

@@ -10,7 +10,8 @@ effects selected so far):
    under it: with whitened residuals, chi2 = z.z, the likelihood-ratio statistic
    LRT = chi2_current - chi2_candidate and BIC = chi2 + k ln n.  The noise was estimated
    from these same recordings with nu effective degrees of freedom
-   (:meth:`NoiseModel.nu_eff`), so LRT / k ~ F(k, nu), not chi2(k) / k: on a short
+   (:meth:`NoiseModel.nu_level`; infinite for a stated noise without a slow part), so
+   LRT / k ~ F(k, nu), not chi2(k) / k: on a short
    recording (tens of points) a misfit that a noise level estimated too low makes look
    large is not taken for an effect (the tests of what remains, :mod:`diagnosis.remaining`,
    were F tests already); for hundreds of points the two agree;
@@ -232,7 +233,7 @@ def compare(ctx: Context, rnd: Round, current: Fit, m: int, noise) -> list:
     """The round's table under ``noise``: chi2, LRT p, BIC and significance per fit."""
     c0 = ctx.chi2(noise, current)
     n = len(ctx.obs)
-    nu = noise.nu_eff()
+    nu = noise.nu_level()
     table = []
     for e, f in rnd.fits.items():
         k = len(ctx.lib[e].names)

@@ -307,3 +307,75 @@ def test_a_slow_noise_the_recordings_leave_open_is_kept_as_a_rival():
     assert other.nll(r) != pytest.approx(nm.nll(r))  # the full likelihood sees it
     obs, r, B = _smooth_misfit(0.0)
     assert fit_noise(obs, r, stated={"stress": 1.0}, systematic=B).rival() is None
+
+
+def test_an_effect_tested_under_a_noise_estimated_from_the_same_recordings():
+    """The significance of an effect (``diagnosis.selection``) when the noise SD was
+    estimated from the recordings with nu degrees of freedom: LRT / k ~ F(k, nu).  Checked
+    against closed forms (F(1, nu) = t(nu)^2; the chi-square limit for a known noise) and
+    by simulation: a straight line fitted to 24 noisy points, an absent quadratic term
+    tested with the noise SD estimated from the residual of the model with it (nu = 21),
+    20 000 times.  Under F the false alarms occur at the nominal rate 0.01 (sampling SD
+    0.0007: tolerance 0.003); read as chi2(1) they occur at 0.018 (P(F(1, 21) > 6.63))."""
+    from scipy import stats
+
+    from diagnosis.selection import chi2_needed, lrt_p_value
+
+    for lrt, nu in ((4.0, 21.0), (12.5, 7.0)):
+        assert lrt_p_value(lrt, 1, nu) == pytest.approx(2 * stats.t.sf(math.sqrt(lrt), nu),
+                                                        rel=1e-9)
+    assert lrt_p_value(9.0, 2) == pytest.approx(math.exp(-4.5), rel=1e-12)  # chi2(2)
+    assert lrt_p_value(9.0, 2, 1e9) == pytest.approx(math.exp(-4.5), rel=1e-6)
+    # the bar: p = alpha / m exactly at it when the test part dominates (n small)
+    for k, nu in ((1, 20.0), (3, 9.0)):
+        bar = chi2_needed(k, 4, 5, nu=nu)
+        assert lrt_p_value(bar, k, nu) == pytest.approx(1e-3 / 4, rel=1e-6)
+        assert bar > chi2_needed(k, 4, 5)  # above the known-noise bar
+    assert chi2_needed(2, 6, 2000, nu=500.0) == chi2_needed(2, 6, 2000)  # BIC decides
+
+    rng = np.random.default_rng(7)
+    x = np.linspace(-1.0, 1.0, 24)
+    X0 = np.c_[np.ones_like(x), x]
+    X1 = np.c_[X0, x**2 - np.mean(x**2)]
+    y = rng.normal(0.0, 1.0, (20000, 24))  # the line is 0: pure noise
+
+    def rss(X):
+        coef = np.linalg.lstsq(X, y.T, rcond=None)[0]
+        return np.sum((y.T - X @ coef) ** 2, axis=0)
+
+    nu = 24 - 3
+    s2 = rss(X1) / nu  # the noise variance from the model with the candidate
+    lrt = (rss(X0) - rss(X1)) / s2
+    p_f = np.array([lrt_p_value(v, 1, nu) for v in lrt])
+    assert np.mean(p_f < 0.01) == pytest.approx(0.01, abs=0.003)
+    assert np.mean(stats.chi2.sf(lrt, 1) < 0.01) > 0.015
+
+
+def test_noise_model_degrees_of_freedom_for_the_tests():
+    """``NoiseModel.nu_level``: two series of 30 and 20 points, 3 columns projected out of
+    each (REML), so nu_s = 27 and 17, and 1 / nu = (30/50)^2 / 27 + (20/50)^2 / 17; nothing
+    projected out: 30 and 20.  With the white SD of one channel stated, only its slow
+    part is estimated: none fitted (white noise alone), that series is known (it drops
+    out of the sum); a slow part with share f of its variance divides nu_s by f^2."""
+    from diagnosis.noise import ChannelNoise, NoiseModel
+
+    rng = np.random.default_rng(1)
+    a = _obs(np.arange(30.0), rng.normal(size=30), 10)
+    b = _obs(np.arange(20.0), rng.normal(size=20), 10).assign(curve="torsion",
+                                                              test="torsion",
+                                                              channel="torque")
+    obs = pd.concat([a, b], ignore_index=True)
+    r = obs["value"].to_numpy()
+    B = np.c_[np.ones(50), np.arange(50.0), rng.normal(size=50)]
+    nm = fit_noise(obs, r, drift=False, correlated=False, systematic=B)
+    assert nm.nu_level() == pytest.approx(1.0 / (0.6**2 / 27 + 0.4**2 / 17), rel=1e-12)
+    plain = fit_noise(obs, r, drift=False, correlated=False)  # nothing projected out
+    assert plain.nu_level() == pytest.approx(1.0 / (0.6**2 / 30 + 0.4**2 / 20), rel=1e-12)
+    stated = fit_noise(obs, r, drift=False, correlated=False, stated={"torque": 1.0})
+    assert stated.nu_level() == pytest.approx(30.0 / 0.6**2, rel=1e-12)
+    slow = {("compression_tension", "stress"): ChannelNoise(white=1.0),
+            ("torsion", "torque"): ChannelNoise(white=1.0, corr=1.0, corr_s=2.0)}
+    held = NoiseModel(obs, slow, np.r_[np.full(30, 30.0), np.full(20, 20.0)],
+                      held=frozenset({("torsion", "torque")}))
+    assert held.nu_level() == pytest.approx(1.0 / (0.6**2 / 30 + 0.4**2 / (20 / 0.5**2)),
+                                            rel=1e-12)
