@@ -309,7 +309,8 @@ def test_a_candidate_that_cannot_be_scored_is_listed():
 
     ctx = SimpleNamespace(chi2=lambda noise, f: 100.0, obs=[0] * 10, lib={})
     rnd = Round([], {}, {}, [], unscored=["viscoelastic"])
-    (row,) = compare(ctx, rnd, SimpleNamespace(k=3), 6, None)
+    known = SimpleNamespace(nu_level=lambda: float("inf"))  # a noise model, known exactly
+    (row,) = compare(ctx, rnd, SimpleNamespace(k=3), 6, known)
     assert row["effect"] == "viscoelastic" and row["score_failed"]
     assert not row["significant"] and np.isnan(row["score"])
 
