@@ -603,7 +603,8 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list,
             continue
         k = len(ctx.lib[e].names)
         lrt = ctx.chi2(noise, without) - ctx.chi2(noise, current)
-        needed = ctx.needed(k, max(len(chosen), 1), noise.nu_level())
+        needed = ctx.needed(k, max(len(chosen), 1),
+                            noise.nu_level() if noise is not None else math.inf)
         if rival is not None:
             lrt_rival = ctx.chi2(rival, without) - ctx.chi2(rival, current)
             if (lrt_rival < needed) != (lrt < needed):

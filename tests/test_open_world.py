@@ -431,7 +431,7 @@ def test_the_effect_just_added_is_re_tested_from_the_joint_fit(monkeypatch):
     monkeypatch.setattr(eng, "fit", fit)
     ctx = SimpleNamespace(sim=None, obs=None, weights=None, lib=lib, max_nfev=15,
                           chi2=lambda noise, f: f.chi2,
-                          needed=lambda k, m: chi2_needed(k, m, 300))
+                          needed=lambda k, m, nu: chi2_needed(k, m, 300, nu=nu))
     joint = SimpleNamespace(chi2=100.0, values={Param.parse(k): v for k, v in {
         "mu_0": 1.9, "log10_k": -0.35, "stretch_offset": -0.002, "nu0": 0.4902}.items()})
     chosen = ["imperfect_gluing", "artefacts", "compressibility"]
@@ -450,7 +450,7 @@ def test_the_effect_just_added_is_re_tested_from_the_joint_fit(monkeypatch):
     # noise weighs the refit's misfit otherwise: nu0 would stay (LRT 50.4 > about 15), so
     # that decision is reported as one the noise decides (notes.noise_doubt)
     rival = object()
-    noise = SimpleNamespace(rival=lambda: rival)
+    noise = SimpleNamespace(rival=lambda: rival, nu_level=lambda: float("inf"))
     ctx.chi2 = lambda nm, f: f.chi2 + (50.0 if nm is rival and f is not joint else 0.0)
     current, kept, dropped, doubts = eng._retest(ctx, joint, chosen, noise)
     assert dropped == ["compressibility"]  # the decision is the chosen noise's

@@ -434,7 +434,7 @@ def test_limits_survive_a_history_that_cannot_be_followed(caplog):
                                    "ogden_2term", "mullins", "imperfect_gluing")}
     current = types.SimpleNamespace(values={MU: 1.0, Param("alpha", 0): -10.0},
                                     prediction=np.zeros(n))
-    nm = types.SimpleNamespace(whiten_jacobian=lambda J: J / 0.01)
+    nm = types.SimpleNamespace(whiten_jacobian=lambda J: J / 0.01, nu_level=lambda: np.inf)
 
     def run(fail):
         sim = types.SimpleNamespace(nu0=0.49, predict=lambda v, q: predict(v, q, fail))
