@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+from scipy import stats
 
 from .series import as_float, check, groups, series_ids
 
@@ -163,6 +164,16 @@ def nu_eff(obs: pd.DataFrame, dof: np.ndarray) -> float:
     inv = sum((len(g) / n) ** 2 / float(dof[g.index[0]])
               for _, g in obs.groupby(["curve", "channel"], sort=False))
     return 1.0 / inv if inv > 0 else math.inf
+
+
+def lrt_p_value(lrt: float, k: int, nu: float = math.inf) -> float:
+    """p of a likelihood-ratio statistic ``lrt`` for k extra parameters, in units of a noise
+    estimated with ``nu`` degrees of freedom: F(k, nu) of lrt / k (chi2(k) of lrt when the
+    noise is known, ``nu`` infinite, the limit of the F test)."""
+    lrt = max(float(lrt), 0.0)
+    if math.isfinite(nu):
+        return float(stats.f.sf(lrt / k, k, nu))
+    return float(stats.chi2.sf(lrt, k))
 
 
 # --------------------------------------------------------------------------- noise model

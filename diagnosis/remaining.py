@@ -30,10 +30,9 @@ import math
 
 import numpy as np
 import pandas as pd
-from scipy import stats
 
 from . import locate as loc
-from .noise import nu_eff
+from .noise import lrt_p_value, nu_eff
 from .series import neutral_of
 
 KNOTS = 5  # knots of the generic misfit per curve/channel/branch (plus the neutral value)
@@ -149,12 +148,7 @@ def _lrt(Bw: np.ndarray, z: np.ndarray, n: int, alpha: float, bic_margin: float,
     known noise, an F test when the noise was estimated with ``nu`` degrees of freedom."""
     coef, _, rank, _ = np.linalg.lstsq(Bw, z, rcond=None)
     gain = float(z @ z - np.sum((z - Bw @ coef) ** 2))
-    if not rank:
-        p = 1.0
-    elif math.isfinite(nu):
-        p = float(stats.f.sf(gain / rank, rank, nu))
-    else:
-        p = float(stats.chi2.sf(gain, rank))
+    p = lrt_p_value(gain, rank, nu) if rank else 1.0
     return {"gain": gain, "dof": int(rank), "p_value": p, "significant": bool(
         rank and p < alpha and gain > rank * math.log(n) + bic_margin)}
 

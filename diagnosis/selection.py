@@ -36,6 +36,7 @@ from scipy import stats
 
 from .effects import parameter_names
 from .fitting import Fit, fit
+from .noise import lrt_p_value
 from .screen import design, design_scales, score
 
 log = logging.getLogger(__name__)
@@ -66,16 +67,6 @@ def chi2_needed(k: int, m: int, n: int, alpha: float = ALPHA,
     test = (k * float(stats.f.isf(alpha / m, k, nu)) if math.isfinite(nu)
             else float(stats.chi2.isf(alpha / m, k)))
     return max(test, k * math.log(n) + bic_margin)
-
-
-def lrt_p_value(lrt: float, k: int, nu: float = math.inf) -> float:
-    """p of a likelihood-ratio statistic ``lrt`` for k extra parameters, in units of a noise
-    estimated with ``nu`` degrees of freedom: F(k, nu) of lrt / k (chi2(k) of lrt when the
-    noise is known, ``nu`` infinite, the limit of the F test)."""
-    lrt = max(float(lrt), 0.0)
-    if math.isfinite(nu):
-        return float(stats.f.sf(lrt / k, k, nu))
-    return float(stats.chi2.sf(lrt, k))
 
 
 @dataclass
