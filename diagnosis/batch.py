@@ -58,9 +58,7 @@ def _diagnose_one(name, rec, specs, target: Path, *, refinement, effects, nu0, n
         if check_digits:
             determinacy.check(d, run)
     log.info("%s: verdict %s", name, d.verdict)
-    if comm.rank == 0:
-        return report.write(d, target, title=f"Diagnosis of specimen {name}")
-    return {}
+    return report.write(d, target, title=f"Diagnosis of specimen {name}", comm=comm)
 
 
 def diagnose_recordings(recordings: str, specimens: str, out: str, *,

@@ -3,6 +3,7 @@ after modelling the named physics."""
 
 from __future__ import annotations
 
+import io
 import logging
 import math
 import os
@@ -10,7 +11,7 @@ import os
 import numpy as np
 import pandas as pd
 
-from brain_fe.io import write_figure_atomic
+from brain_fe.io import write_atomic, write_figure_atomic
 
 from .locate import cells
 from .series import as_float, check, neutral_of, run_ids
@@ -135,6 +136,12 @@ def mismatch_map(obs: pd.DataFrame, residual, sigma, table: pd.DataFrame, path) 
 
 def before_after(d, path) -> None:
     """Recording, base fit and refit for every curve/channel, loading and unloading."""
+    png = before_after_png(d)
+    write_atomic(path, lambda fh: fh.write(png))
+
+
+def before_after_png(d) -> bytes:
+    """The figure of :func:`before_after` as PNG bytes (another MPI rank may draw it)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -161,8 +168,10 @@ def before_after(d, path) -> None:
                       else "amount of shear")
     axes[0][0].legend(fontsize=7)
     fig.tight_layout()
-    write_figure_atomic(fig, path, dpi=110)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
+    return buf.getvalue()
 
 
 def across_specimens(results: dict, groups: dict, path) -> None:

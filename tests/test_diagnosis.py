@@ -228,6 +228,96 @@ def test_check_digits_end_to_end(tmp_path):
     assert "last digits (checked)" in (out / "report.md").read_text()
 
 
+@pytest.mark.mpi
+def test_two_ranks_diagnose_one_specimen_as_one_does(tmp_path):
+    """`mpirun -n 2 brainmech diagnose` of one specimen (the candidates' fits, the curves
+    of lone fits and the detection limits shared, the before/after figure drawn by rank 1
+    while rank 0 draws the mismatch map) writes what one rank writes: the same
+    diagnosis.json (timings aside), report and figures, bit for bit."""
+    import pandas as pd
+    from launch import child_env
+
+    from brain_fe.geometry import make as make_geometry
+    from diagnosis.batch import diagnose_recordings
+    from diagnosis.benchmark import _recordings, full_protocols
+
+    vals = {"mu_0": 1.0, "alpha_0": -15.0, "beta_0": 0.4, "log10_tau_0": 0.5}
+    g = make_geometry("axisymmetric", 4.0, 5.0, 2, comm=MPI.COMM_SELF)
+    rec = _recordings(vals, full_protocols(1, 0.05)[:2], g, "S", 0.01,
+                      np.random.default_rng(5))
+    rec.to_csv(tmp_path / "recordings.csv", index=False)
+    pd.DataFrame({"specimen": ["S"], "region": ["CX"], "brain": ["B"], "radius_mm": [4.0],
+                  "height_mm": [5.0]}).to_csv(tmp_path / "specimens.csv", index=False)
+    args = ["--recordings", str(tmp_path / "recordings.csv"), "--specimens",
+            str(tmp_path / "specimens.csv"), "--effects", "viscoelastic,artefacts"]
+    r = subprocess.run(["mpirun", "-n", "2", sys.executable, "-m", "brainmech", "-v",
+                        "diagnose", *args, "--out", str(tmp_path / "two")],
+                       env=child_env(), capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "before/after figure drawn by rank 1" in r.stderr
+    diagnose_recordings(str(tmp_path / "recordings.csv"), str(tmp_path / "specimens.csv"),
+                        str(tmp_path / "one"), effects=["viscoelastic", "artefacts"],
+                        comm=MPI.COMM_SELF)
+    one, two = tmp_path / "one", tmp_path / "two"
+    for f in ("before_after.png", "mismatch_map.png"):
+        assert (one / f).read_bytes() == (two / f).read_bytes(), f
+    a, b = (json.loads((d / "diagnosis.json").read_text()) for d in (one, two))
+    assert a["verdict"] == "viscoelastic"
+    for k in ("timings_s", "elapsed_s"):
+        a.pop(k), b.pop(k)
+    assert a == b
+
+    def report(d):
+        return [ln for ln in (d / "report.md").read_text().splitlines()
+                if not ln.startswith("Elapsed")]
+    assert report(one) == report(two)
+    assert sorted(p.name for p in two.iterdir()) == sorted(p.name for p in one.iterdir())
+
+
+def test_a_figure_rank_1_cannot_draw_is_drawn_by_rank_0(tmp_path, monkeypatch, caplog):
+    """The report's hand-over between ranks with a stand-in communicator: rank 1 sends the
+    before/after figure, or None when drawing it fails (and says why); rank 0 then draws
+    it itself.  Rank 0 receives in any case, also when its own writing fails (rank 1
+    would otherwise wait in its send for ever)."""
+    import logging
+    import types
+
+    import diagnosis.report as report
+
+    sent = []
+
+    def comm(rank):
+        return types.SimpleNamespace(size=2, rank=rank,
+                                     send=lambda obj, dest, tag: sent.append(obj),
+                                     recv=lambda source, tag: sent.pop(0))
+
+    drawn = []
+    monkeypatch.setattr(report, "before_after", lambda d, path: drawn.append(path))
+    monkeypatch.setattr(report, "_write", lambda d, out, title, elsewhere: (
+        report.before_after(d, out / "before_after.png") if elsewhere() is None
+        else None, {"written": True})[1])
+
+    def fails(d):
+        raise RuntimeError("no figure here")
+    monkeypatch.setattr(report, "before_after_png", fails)
+    with caplog.at_level(logging.ERROR, logger="diagnosis.report"):
+        assert report.write(None, tmp_path / "a", comm=comm(1)) == {}
+    assert sent == [None] and "no figure here" in caplog.text
+    assert report.write(None, tmp_path / "a", comm=comm(0)) == {"written": True}
+    assert sent == [] and [p.name for p in drawn] == ["before_after.png"]
+
+    monkeypatch.setattr(report, "before_after_png", lambda d: b"png")
+    report.write(None, tmp_path / "b", comm=comm(1))
+    assert sent == [b"png"]
+
+    def broken(d, out, title, elsewhere):
+        raise OSError("disk full")
+    monkeypatch.setattr(report, "_write", broken)
+    with pytest.raises(OSError):
+        report.write(None, tmp_path / "b", comm=comm(0))
+    assert sent == []  # received all the same
+
+
 def test_a_fit_against_what_the_model_can_solve_says_so():
     """A model that cannot be solved beyond mu = 2 fitted to data of mu = 3: the fit ends
     at the edge (here on its budget; on real double compressions with a tolerance met)
