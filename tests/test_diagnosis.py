@@ -200,22 +200,29 @@ def test_a_verdict_the_last_digits_move_is_cannot_tell():
                                     "explained))")
 
 
-def test_check_digits_end_to_end(tmp_path):
-    """`diagnose_recordings(check_digits=True)` on a small control specimen (from a finer
-    mesh, 1 % noise): diagnosed twice, the same verdict, said in the JSON and the report."""
+def _one_specimen(tmp_path, vals: dict, seed: int) -> None:
+    """recordings.csv and specimens.csv of one specimen S (radius 4, height 5 mm) with
+    parameters ``vals``: compression/tension and the first torsion of the default protocol
+    at 0.05 increments, from the k = 2 mesh (finer than the diagnosis's k = 1), 1 % noise."""
     import pandas as pd
 
     from brain_fe.geometry import make as make_geometry
-    from diagnosis.batch import diagnose_recordings
     from diagnosis.benchmark import _recordings, full_protocols
 
-    vals = {"mu_0": 1.0, "alpha_0": -15.0}
     g = make_geometry("axisymmetric", 4.0, 5.0, 2, comm=MPI.COMM_SELF)
     rec = _recordings(vals, full_protocols(1, 0.05)[:2], g, "S", 0.01,
-                      np.random.default_rng(3))
+                      np.random.default_rng(seed))
     rec.to_csv(tmp_path / "recordings.csv", index=False)
     pd.DataFrame({"specimen": ["S"], "region": ["CX"], "brain": ["B"], "radius_mm": [4.0],
                   "height_mm": [5.0]}).to_csv(tmp_path / "specimens.csv", index=False)
+
+
+def test_check_digits_end_to_end(tmp_path):
+    """`diagnose_recordings(check_digits=True)` on a small control specimen (from a finer
+    mesh, 1 % noise): diagnosed twice, the same verdict, said in the JSON and the report."""
+    from diagnosis.batch import diagnose_recordings
+
+    _one_specimen(tmp_path, {"mu_0": 1.0, "alpha_0": -15.0}, 3)
     out = tmp_path / "out"
     res = diagnose_recordings(str(tmp_path / "recordings.csv"),
                               str(tmp_path / "specimens.csv"), str(out),
@@ -234,20 +241,12 @@ def test_two_ranks_diagnose_one_specimen_as_one_does(tmp_path):
     of lone fits and the detection limits shared, the before/after figure drawn by rank 1
     while rank 0 draws the mismatch map) writes what one rank writes: the same
     diagnosis.json (timings aside), report and figures, bit for bit."""
-    import pandas as pd
     from launch import child_env
 
-    from brain_fe.geometry import make as make_geometry
     from diagnosis.batch import diagnose_recordings
-    from diagnosis.benchmark import _recordings, full_protocols
 
-    vals = {"mu_0": 1.0, "alpha_0": -15.0, "beta_0": 0.4, "log10_tau_0": 0.5}
-    g = make_geometry("axisymmetric", 4.0, 5.0, 2, comm=MPI.COMM_SELF)
-    rec = _recordings(vals, full_protocols(1, 0.05)[:2], g, "S", 0.01,
-                      np.random.default_rng(5))
-    rec.to_csv(tmp_path / "recordings.csv", index=False)
-    pd.DataFrame({"specimen": ["S"], "region": ["CX"], "brain": ["B"], "radius_mm": [4.0],
-                  "height_mm": [5.0]}).to_csv(tmp_path / "specimens.csv", index=False)
+    _one_specimen(tmp_path, {"mu_0": 1.0, "alpha_0": -15.0, "beta_0": 0.4,
+                             "log10_tau_0": 0.5}, 5)
     args = ["--recordings", str(tmp_path / "recordings.csv"), "--specimens",
             str(tmp_path / "specimens.csv"), "--effects", "viscoelastic,artefacts"]
     r = subprocess.run(["mpirun", "-n", "2", sys.executable, "-m", "brainmech", "-v",
