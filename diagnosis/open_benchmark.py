@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from pathlib import Path
 
 import numpy as np
@@ -117,6 +118,7 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
     """Generate, diagnose blind and score ``n_cases`` open-world cases, each on whichever
     MPI rank is free.  Writes DIR/cases/, labels.json, results.json, summary.json,
     summary.md."""
+    t_start = time.perf_counter()
     out = Path(out)
     config = {"world": "open", "seed": seed, "refinement": refinement,
               "engine": ENGINE_VERSION}
@@ -131,17 +133,21 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
     models: dict = {}
     mine = []
     skipped = []
+    reused = []
     counter = SharedCounter(comm)
     with rank_local():  # this rank's own cases: its warnings are said
         # each case to whichever rank is free (a case depends only on its seed and
         # index, not on the rank or the cases before it)
         for i in dynamic_items(range(n_cases), counter):
+            t0 = time.perf_counter()
             made = _case(i, seed, models)
             if made is None:
                 skipped.append(f"world{i:03d}")
                 continue
             rec, spec_df, case = made
-            label = dict(case.label(), noise_sd=noise_sd(case.noise))
+            # the truth's generation, its draws that could not be solved included
+            label = dict(case.label(), noise_sd=noise_sd(case.noise),
+                         generation_s=round(time.perf_counter() - t0, 2))
             # the label of every case as soon as it exists (apart from what the diagnosis
             # reads), so that a benchmark stopped early can be scored (--rescore)
             write_json_atomic(out / "labels" / f"{case.name}.json", label, indent=1)
@@ -152,6 +158,7 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
             if reusable and result_path.exists() and csv_path.exists() and \
                     csv_path.read_text() == text:
                 res = json.loads(result_path.read_text())
+                reused.append(case.name)
                 log.info("%s: recordings unchanged, diagnosis reused", case.name)
             write_text_atomic(csv_path, text)
             write_text_atomic(out / "cases" / f"{case.name}_specimens.csv",
@@ -173,6 +180,8 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
     results = {n: r for n, _, r in allres}
     summary = score(labels, results)
     summary["left_out"] = sorted(gather_all(comm, skipped))
+    summary["run"] = {"wall_s": round(time.perf_counter() - t_start, 1), "ranks": comm.size,
+                      "reused": len(gather_all(comm, reused))}
     if comm.rank == 0:
         write_json_atomic(out / "labels.json", labels, indent=1)
         write_json_atomic(out / "results.json", results, indent=1)
@@ -287,6 +296,16 @@ def score(labels: dict, results: dict) -> dict:
     out["explained_above_1.2"] = sorted(explained.loc[
         explained["rms_after_over_true_noise"] > 1.2, "case"])
     out["elapsed_s_median"] = float(df["elapsed_s"].median()) if len(df) else float("nan")
+    gen = pd.Series([labels[n].get("generation_s", np.nan) for n in sorted(labels)],
+                    dtype=float)
+    longest = df.nlargest(3, "elapsed_s") if len(df) else df
+    out["time"] = {"diagnoses_s": float(df["elapsed_s"].sum()) if len(df) else 0.0,
+                   "longest": [[c, float(t)] for c, t in zip(longest["case"],
+                                                            longest["elapsed_s"],
+                                                            strict=True)],
+                   "generation_s": float(gen.sum()) if gen.notna().any() else None,
+                   "generation_s_median": float(gen.median()) if gen.notna().any()
+                   else None}
     out["confusion"] = pd.crosstab(df["expected"], df["verdict"]).to_dict(orient="index") \
         if len(df) else {}
     out["status_by_kind"] = pd.crosstab(df["kind"], df["status"]).to_dict(orient="index") \
@@ -317,6 +336,27 @@ def _doubt_line(d: dict | None) -> str:
             f"{d['wrong']}")
 
 
+def _time_line(s: dict) -> str:
+    """Where the time went: the whole run (when this summary was written by the run
+    itself), the diagnoses and the generation of the truths, in rank-seconds."""
+    t = s.get("time", {})
+    parts = []
+    run = s.get("run")
+    if run:
+        parts.append(f"the whole run {run['wall_s'] / 60:.1f} min on {run['ranks']} rank(s)"
+                     + (f" ({run['reused']} diagnoses reused from an earlier run)"
+                        if run["reused"] else ""))
+    longest = ", ".join(f"{c} {v:.0f} s" for c, v in t.get("longest", []))
+    parts.append(f"diagnoses {t.get('diagnoses_s', float('nan')):.0f} rank-s (median "
+                 f"{s['elapsed_s_median']:.0f} s per case on one rank"
+                 + (f"; longest {longest}" if longest else "") + ")")
+    if t.get("generation_s") is not None:
+        parts.append(f"generation of the truths {t['generation_s']:.0f} rank-s (median "
+                     f"{t['generation_s_median']:.0f} s per case, draws that could not be "
+                     "solved included)")
+    return "- time: " + "; ".join(parts)
+
+
 def summary_markdown(s: dict) -> str:
     c, si, p, o = (s[k] for k in KINDS)
     lines = ["# Open-world diagnosis benchmark", "",
@@ -340,7 +380,7 @@ def summary_markdown(s: dict) -> str:
              + (f" (above 1.2: {', '.join(s['explained_above_1.2'])})"
                 if s["explained_above_1.2"] else ""),
              _doubt_line(s.get("cannot_tell")),
-             f"- diagnosis time per case (median, one rank): {s['elapsed_s_median']:.0f} s",
+             _time_line(s),
              "- left out (no solvable truth in 5 draws): "
              + (", ".join(s.get("left_out", [])) or "none"),
              "", "Outcomes (rows: the right answer, columns: verdict)", ""]
@@ -381,10 +421,13 @@ def rescore_open(out: str | Path) -> dict:
         results[name] = res
     if not labels:
         raise ValueError(f"{out}: no case has both a label and a result yet")
-    before = out / "summary.json"  # the run's own list of draws left out, if it wrote one
-    left_out = json.loads(before.read_text()).get("left_out", []) if before.exists() else []
+    before = out / "summary.json"  # the run's own list of draws left out, if it wrote one,
+    # and its wall time
+    run = json.loads(before.read_text()) if before.exists() else {}
     summary = score(labels, results)
-    summary["left_out"] = left_out
+    summary["left_out"] = run.get("left_out", [])
+    if run.get("run") and run.get("cases") == summary["cases"]:
+        summary["run"] = run["run"]  # the same cases: the run's own wall time still holds
     write_json_atomic(out / "summary.json", summary, indent=1)
     write_text_atomic(out / "summary.md", summary_markdown(summary))
     return summary

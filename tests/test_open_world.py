@@ -147,7 +147,18 @@ def test_open_world_two_cases_blind(tmp_path):
     rec = pd.read_csv(tmp_path / "cases" / "world001_recordings.csv")
     assert rec["time_s"].diff().dropna().gt(0).any()
     assert "Outcomes" in (tmp_path / "summary.md").read_text()
+    # where the time went: the whole run, the diagnoses and the generation of the truths
+    assert s["run"]["ranks"] == 1 and s["run"]["reused"] == 0
+    assert s["time"]["diagnoses_s"] == pytest.approx(
+        sum(r["elapsed_s"] for r in results.values()))
+    gen = [lab["generation_s"] for lab in labels.values()]
+    assert all(g > 0 for g in gen) and s["time"]["generation_s"] == pytest.approx(sum(gen))
+    assert s["run"]["wall_s"] >= s["time"]["diagnoses_s"] + s["time"]["generation_s"] - 1
+    line = [ln for ln in (tmp_path / "summary.md").read_text().splitlines()
+            if ln.startswith("- time:")]
+    assert len(line) == 1 and "the whole run" in line[0] and "on 1 rank(s)" in line[0]
     again = rescore_open(tmp_path)  # from the per-case labels and results on disk
+    assert again["run"] == s["run"]  # the same cases: the run's wall time kept
     assert again["confusion"] == s["confusion"]
     assert again["explained_rms_over_true_noise_max"] == pytest.approx(
         s["explained_rms_over_true_noise_max"], rel=1e-9)
