@@ -235,7 +235,6 @@ def test_check_digits_end_to_end(tmp_path):
     assert "last digits (checked)" in (out / "report.md").read_text()
 
 
-@pytest.mark.mpi
 def test_two_ranks_diagnose_one_specimen_as_one_does(tmp_path):
     """`mpirun -n 2 brainmech diagnose` of one specimen (the candidates' fits, the curves
     of lone fits and the detection limits shared, the before/after figure drawn by rank 1
