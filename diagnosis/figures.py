@@ -11,7 +11,7 @@ import os
 import numpy as np
 import pandas as pd
 
-from brain_fe.io import write_atomic, write_figure_atomic
+from brain_fe.io import write_figure_atomic
 
 from .locate import cells
 from .series import as_float, check, neutral_of, run_ids
@@ -134,14 +134,9 @@ def mismatch_map(obs: pd.DataFrame, residual, sigma, table: pd.DataFrame, path) 
     return path
 
 
-def before_after(d, path) -> None:
-    """Recording, base fit and refit for every curve/channel, loading and unloading."""
-    png = before_after_png(d)
-    write_atomic(path, lambda fh: fh.write(png))
-
-
 def before_after_png(d) -> bytes:
-    """The figure of :func:`before_after` as PNG bytes (another MPI rank may draw it)."""
+    """Recording, base fit and refit for every curve/channel, loading and unloading, as
+    PNG bytes (another MPI rank may draw it)."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -12,7 +12,7 @@ from brain_fe.logs import rank_local
 
 from .effects import EFFECTS
 from .engine import EXPLAINS_FRACTION
-from .figures import before_after, before_after_png, mismatch_map
+from .figures import before_after_png, mismatch_map
 from .remaining import trend_change
 
 log = logging.getLogger(__name__)
@@ -102,10 +102,10 @@ def _write(d, out: Path, title: str, drawn_elsewhere) -> dict:
                  out / "mismatch_map.png")
     png = drawn_elsewhere()
     if png is None:
-        before_after(d, out / "before_after.png")
+        png = before_after_png(d)
     else:
         log.debug("before/after figure drawn by rank 1")
-        write_atomic(out / "before_after.png", lambda fh: fh.write(png))
+    write_atomic(out / "before_after.png", lambda fh: fh.write(png))
     write_json_atomic(out / "diagnosis.json", res, indent=1, default=float)
     named = " + ".join(EFFECTS[e].description if e in EFFECTS else e for e in d.effects)
     lines = [f"# {title}", "", f"**Verdict: {d.verdict}** ({d.status})"
