@@ -53,7 +53,14 @@ from .drift import drift_model
 from .effects import BASE_NAMES, check_effects, library, parameter_names, separating_test
 from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
 from .noise import NoiseModel, estimate_noise, fit_noise
-from .notes import contact_event_notes, contact_notes, edge_notes, noise_doubt, wander_doubt
+from .notes import (
+    contact_event_notes,
+    contact_notes,
+    edge_notes,
+    noise_doubt,
+    slowest_wander_doubt,
+    wander_doubt,
+)
 from .remaining import remaining, systematic_basis, trend_change
 from .screen import (
     AT_DESIGN,
@@ -84,7 +91,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-17"
+ENGINE_VERSION = "2026.11-open-world-18"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
@@ -337,7 +344,8 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     doubt = wander_doubt(status, rem, final_noise, noise)
     undetermined, rivals = noise_doubt(rounds, status, chosen, _rival_outcome(
         obs, base, current, in_model, final_noise, alpha, bic_margin))
-    doubt = "; ".join(filter(None, [doubt, undetermined]))
+    doubt = "; ".join(filter(None, [doubt, slowest_wander_doubt(status, rem, final_noise),
+                                    undetermined]))
     if rivals and not undetermined:
         notes.append("the recordings leave the slow part of the noise undetermined in "
                      f"{', '.join(p['where'] for p in rivals)} (two noise models neither "

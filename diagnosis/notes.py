@@ -1,8 +1,10 @@
 """What a diagnosis says beside its verdict: the notes and the reasons it cannot tell.
 
-* :func:`wander_doubt` and :func:`noise_doubt`: why a verdict cannot be trusted (a misfit
-  that passes as noise only with a wander far above the stated instrument noise; a
-  decision that depends on which of two noise models the recordings leave open);
+* :func:`wander_doubt`, :func:`slowest_wander_doubt` and :func:`noise_doubt`: why a verdict
+  cannot be trusted (a misfit that passes as noise only with a wander far above the stated
+  instrument noise, or only with the slowest wander the noise model allows, in recordings
+  without a repeated cycle; a decision that depends on which of two noise models the
+  recordings leave open);
 * :func:`edge_notes`: fits that stopped where the model could not be solved;
 * :func:`contact_notes`, :func:`contact_event_notes`: points recorded off the specimen,
   and where the model lets go of it (lift-off) against where the recordings say.
@@ -15,7 +17,7 @@ import logging
 import numpy as np
 
 from .fitting import Fit
-from .noise import NoiseModel
+from .noise import MAX_CORR_OVER_RAMP, NoiseModel, time_scales
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +43,36 @@ def wander_doubt(status: str, rem: dict, nm: NoiseModel, stated: dict | None) ->
     return (f"without a repeated ramp, the residual of {k} passes as noise only with a "
             f"wander and drift of SD {slow:.3g}, {slow / sd:.0f} times the stated "
             f"instrument noise {sd:.3g}: a smooth misfit and wander cannot be told apart here")
+
+
+# A correlation time within this fraction of the longest the noise model allows is at it
+AT_BOUND = 0.99
+
+
+def slowest_wander_doubt(status: str, rem: dict, nm: NoiseModel) -> str:
+    """Why a verdict of no (further) systematic misfit cannot be trusted, or '': without a
+    repeated cycle, the residual passes as noise only with a wander that dominates the
+    white noise and is as slow as the noise model allows (``MAX_CORR_OVER_RAMP`` of a
+    ramp, :mod:`diagnosis.noise`).  The fit pressing against that bound says the residual
+    wants a slower wander still, which is where wander and a smooth misfit of one ramp
+    cannot be told apart (loading and unloading of one cycle are not a repetition of a
+    misfit that changes with time, as a drifting stiffness does).  With repeated cycles the
+    reproducibility test tells them apart, so no doubt is raised.  Measured on the open
+    benchmark (engine open-world-18): 6 of the 36 one-cycle cases, among them world102, a
+    stiffness drift over one cycle named ``imperfect_gluing``."""
+    if status not in ("none", "explained") or rem["reproducible"]["repeats"] == "cycles":
+        return ""
+    dt, ramp = time_scales(nm.obs)
+    bound = max(MAX_CORR_OVER_RAMP * ramp, dt)
+    slowest = [k for k, v in nm.describe().items()
+               if v["correlated"] > v["white"] and v["correlation_time_s"] >= AT_BOUND * bound]
+    if not slowest:
+        return ""
+    what = "half a ramp" if bound > dt else "one sampling interval"
+    return (f"without a repeated cycle, the residual of {', '.join(slowest)} passes as noise "
+            f"only with a wander larger than the white noise and as slow as the noise "
+            f"model allows ({bound:.3g} s, {what}): a slower wander and a smooth misfit "
+            "cannot be told apart here")
 
 
 def noise_doubt(rounds: list, status: str, named: list, final: dict) -> tuple[str, list]:

@@ -379,3 +379,36 @@ def test_noise_model_degrees_of_freedom_for_the_tests():
                       held=frozenset({("torsion", "torque")}))
     assert held.nu_level() == pytest.approx(1.0 / (0.6**2 / 30 + 0.4**2 / (20 / 0.5**2)),
                                             rel=1e-12)
+
+
+
+def test_a_misfit_taken_for_the_slowest_wander_is_a_cannot_tell():
+    """One cycle (loading 0 -> 0.15 and back, 12 points per ramp at 1 s, 20 draws of white
+    noise of SD 1): a smooth misfit that a model without hysteresis leaves, amplitude 4 of a
+    half sine per ramp (RMS 2.8), opposite on loading and unloading, is taken by the noise
+    model for a wander larger than the white part at the longest correlation it allows
+    (half a ramp, 5.5 s) in at least 15 of 20 draws (17 measured): `none` or `explained`
+    then carry a *cannot tell*.  White noise alone raises it in none of the 20 (measured:
+    0); neither does any status that already names a misfit, nor recordings of repeated
+    cycles, where the reproducibility test tells a misfit from wander."""
+    from diagnosis.notes import slowest_wander_doubt
+
+    per_ramp = 12
+    x = np.linspace(0.0, 1.0, per_ramp)
+    misfit = 4.0 * np.concatenate([np.sin(np.pi * x), -np.sin(np.pi * x[::-1])])
+    branches = {"reproducible": {"repeats": "branches"}}
+    said, white_said = 0, 0
+    for seed in range(20):
+        white = np.random.default_rng(seed).normal(size=2 * per_ramp)
+        nm = fit_noise(_cycled_obs(misfit + white, per_ramp), misfit + white)
+        doubt = slowest_wander_doubt("explained", branches, nm)
+        said += bool(doubt)
+        if doubt:
+            assert "as slow as the noise model allows (5.5 s, half a ramp)" in doubt
+            assert slowest_wander_doubt("unexplained", branches, nm) == ""
+            assert slowest_wander_doubt("none", {"reproducible": {"repeats": "cycles"}},
+                                        nm) == ""
+        white_said += bool(slowest_wander_doubt(
+            "none", branches, fit_noise(_cycled_obs(white, per_ramp), white)))
+    assert said >= 15
+    assert white_said == 0
