@@ -293,8 +293,9 @@ def score(labels: dict, results: dict) -> dict:
         explained["rms_after_over_true_noise"].max()) if len(explained) else float("nan")
     out["explained_rms_over_true_noise_median"] = float(
         explained["rms_after_over_true_noise"].median()) if len(explained) else float("nan")
-    out["explained_above_1.2"] = sorted(explained.loc[
-        explained["rms_after_over_true_noise"] > 1.2, "case"])
+    above = explained[explained["rms_after_over_true_noise"] > 1.2]
+    out["explained_above_1.2"] = sorted(above["case"])
+    out["explained_above_1.2_cannot_tell"] = sorted(above.loc[above["cannot_tell"], "case"])
     out["elapsed_s_median"] = float(df["elapsed_s"].median()) if len(df) else float("nan")
     gen = pd.Series([labels[n].get("generation_s", np.nan) for n in sorted(labels)],
                     dtype=float)
@@ -377,7 +378,9 @@ def summary_markdown(s: dict) -> str:
              f"- explained cases, RMS after / true noise: median "
              f"{s['explained_rms_over_true_noise_median']:.2f}, max "
              f"{s['explained_rms_over_true_noise_max']:.2f}"
-             + (f" (above 1.2: {', '.join(s['explained_above_1.2'])})"
+             + (" (above 1.2: " + ", ".join(
+                 c + (" (cannot tell)" if c in s.get("explained_above_1.2_cannot_tell", ())
+                      else "") for c in s["explained_above_1.2"]) + ")"
                 if s["explained_above_1.2"] else ""),
              _doubt_line(s.get("cannot_tell")),
              _time_line(s),

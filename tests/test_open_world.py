@@ -106,6 +106,14 @@ def test_pairs_are_also_scored_where_their_tests_separate_both_effects():
     md = summary_markdown(s)
     assert ("*cannot tell* beside the verdict: 2 (pair 2); right answers among them 1; "
             "wrong answers that say so 1 of 2") in md and "| a (cannot tell) |" in md
+    # an explained case above 1.2 x the true noise says whether it carries a *cannot tell*
+    cases["p1"][1]["rms_after_over_true_noise"] = 1.7
+    cases["p3"][1]["rms_after_over_true_noise"] = 1.3
+    s = score({k: v[0] for k, v in cases.items()}, {k: v[1] for k, v in cases.items()})
+    s["left_out"] = []
+    assert s["explained_above_1.2"] == ["p1", "p3"]
+    assert s["explained_above_1.2_cannot_tell"] == ["p3"]
+    assert "max 1.70 (above 1.2: p1, p3 (cannot tell))" in summary_markdown(s)
 
 
 def test_recorded_times_are_not_on_the_fe_steps():
