@@ -382,6 +382,12 @@ def time_scales(obs: pd.DataFrame) -> tuple[float, float]:
 # The correlated component may be as slow as half a ramp: slower wander cannot be told
 # from a misfit of one ramp by any test, and is left to the misfit (reported, never absorbed)
 MAX_CORR_OVER_RAMP = 0.5
+
+
+def longest_correlation_s(dt: float, ramp: float) -> float:
+    """The longest correlation time the wander may take [s], given the recordings'
+    sampling interval ``dt`` and ramp duration ``ramp`` (:func:`time_scales`)."""
+    return max(MAX_CORR_OVER_RAMP * ramp, dt)
 MIN_REML_DOF = 8  # residual degrees of freedom a series keeps after the projection
 # Starts of the drift, as its end value over the series' span in units of the residual's
 # RMS.  The likelihood is flat in log drift while the drift is far below the white noise:
@@ -462,7 +468,7 @@ def _fit_channel(mine, r, w0, fixed_white, dt, ramp, correlated, drift
         spec.append(("white", w0, 1e-6 * scale, 10 * scale))
     if correlated:
         spec += [("corr", 0.3 * w0, 1e-6 * scale, 10 * scale),
-                 ("corr_s", 2 * dt, 0.5 * dt, max(MAX_CORR_OVER_RAMP * ramp, dt))]
+                 ("corr_s", 2 * dt, 0.5 * dt, longest_correlation_s(dt, ramp))]
     if drift:
         spec.append(("drift", scale / t_span, 1e-8 * scale / t_span,
                      10 * scale / t_span))

@@ -17,7 +17,7 @@ import logging
 import numpy as np
 
 from .fitting import Fit
-from .noise import MAX_CORR_OVER_RAMP, NoiseModel, time_scales
+from .noise import NoiseModel, longest_correlation_s, time_scales
 
 log = logging.getLogger(__name__)
 
@@ -50,20 +50,20 @@ AT_BOUND = 0.99
 
 
 def slowest_wander_doubt(status: str, rem: dict, nm: NoiseModel) -> str:
-    """Why a verdict of no (further) systematic misfit cannot be trusted, or '': without a
-    repeated cycle, the residual passes as noise only with a wander that dominates the
-    white noise and is as slow as the noise model allows (``MAX_CORR_OVER_RAMP`` of a
-    ramp, :mod:`diagnosis.noise`).  The fit pressing against that bound says the residual
-    wants a slower wander still, which is where wander and a smooth misfit of one ramp
-    cannot be told apart (loading and unloading of one cycle are not a repetition of a
-    misfit that changes with time, as a drifting stiffness does).  With repeated cycles the
-    reproducibility test tells them apart, so no doubt is raised.  Measured on the open
+    """Why a verdict of no (further) systematic misfit cannot be trusted, or '': without a repeated
+    cycle, the residual passes as noise only with a wander that dominates the white noise
+    and is as slow as the noise model allows (half a ramp,
+    :func:`diagnosis.noise.longest_correlation_s`). The fit pressing against that bound says
+    the residual wants a slower wander still, which is where wander and a smooth misfit of
+    one ramp cannot be told apart (loading and unloading of one cycle are not a repetition
+    of a misfit that changes with time, as a drifting stiffness does). With repeated cycles
+    the reproducibility test tells them apart, so no doubt is raised. Measured on the open
     benchmark (engine open-world-18): 6 of the 36 one-cycle cases, among them world102, a
     stiffness drift over one cycle named ``imperfect_gluing``."""
     if status not in ("none", "explained") or rem["reproducible"]["repeats"] == "cycles":
         return ""
     dt, ramp = time_scales(nm.obs)
-    bound = max(MAX_CORR_OVER_RAMP * ramp, dt)
+    bound = longest_correlation_s(dt, ramp)
     slowest = [k for k, v in nm.describe().items()
                if v["correlated"] > v["white"] and v["correlation_time_s"] >= AT_BOUND * bound]
     if not slowest:

@@ -381,7 +381,6 @@ def test_noise_model_degrees_of_freedom_for_the_tests():
                                             rel=1e-12)
 
 
-
 def test_a_misfit_taken_for_the_slowest_wander_is_a_cannot_tell():
     """One cycle (loading 0 -> 0.15 and back, 12 points per ramp at 1 s, 20 draws of white
     noise of SD 1): a smooth misfit that a model without hysteresis leaves, amplitude 4 of a
