@@ -8,7 +8,11 @@ that diagnosed them (or, with the same engine, by the machine: rounding).  Print
 kind of case, how many each run got right, every case whose verdict, status, *cannot
 tell* or correctness changed, and how closely the numbers agree (relative differences of
 the RMS before and after modelling and of the generator's calibration misfit: median,
-largest and where).
+largest and where), and the ratio of the per-case diagnosis times (new / old): its median
+and spread over all cases, over the first, middle and last third of the run's order and
+over the shorter and longer half of the cases.  A slowdown of the host (or of another job
+sharing it) moves every case alike; a cache that is cold at the start of a run slows the
+first cases; an engine that does more in some cases slows those.
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ def main() -> None:
         print(f"| {kind} | {n} | {r_old} | {r_new} |")
     print("\n" + "\n".join(changed))
     print("\n" + "\n".join(agreement(old, new, both)))
+    print("\n" + "\n".join(timing(old, new, both)))
 
 
 NUMBERS = ("rms_before", "rms_after", "misfit")
@@ -70,6 +75,32 @@ def agreement(old: dict, new: dict, cases: list) -> list[str]:
         rows.append(f"| {key} | {len(diffs)} | {sum(d == 0.0 for d, _ in diffs)} | "
                     f"{statistics.median(d for d, _ in diffs):.1e} | "
                     f"{diffs[-1][0]:.1e} ({diffs[-1][1]}) |")
+    return rows
+
+
+def timing(old: dict, new: dict, cases: list) -> list[str]:
+    """Markdown rows: the per-case diagnosis time ratio new / old (``elapsed_s``) over
+    ``cases`` in the run's order (case names sort in it), and over its parts."""
+    pairs = [(c, old[c].get("elapsed_s"), new[c].get("elapsed_s")) for c in cases]
+    pairs = [(c, a, b) for c, a, b in pairs if a and b]
+    if not pairs:
+        return []
+    third = max(len(pairs) // 3, 1)
+    by_length = sorted(pairs, key=lambda p: p[1])
+    half = len(by_length) // 2
+    parts = [("all cases", pairs), ("first third of the run", pairs[:third]),
+             ("middle third", pairs[third:-third]), ("last third", pairs[-third:]),
+             ("shorter half (old time)", by_length[:half]),
+             ("longer half (old time)", by_length[half:])]
+    rows = ["| diagnosis time, new / old | cases | median | 10-90 % | sum new / sum old |",
+            "|---|---|---|---|---|"]
+    for name, part in parts:
+        if not part:
+            continue
+        q = sorted(b / a for _, a, b in part)
+        lo, hi = q[int(0.1 * (len(q) - 1))], q[int(round(0.9 * (len(q) - 1)))]
+        rows.append(f"| {name} | {len(q)} | {statistics.median(q):.2f} | {lo:.2f}-{hi:.2f} | "
+                    f"{sum(b for *_, b in part) / sum(a for _, a, _ in part):.2f} |")
     return rows
 
 
