@@ -97,8 +97,8 @@ def timing(old: dict, new: dict, cases: list) -> list[str]:
     for name, part in parts:
         if not part:
             continue
-        q = sorted(b / a for _, a, b in part)
-        lo, hi = q[int(0.1 * (len(q) - 1))], q[int(round(0.9 * (len(q) - 1)))]
+        q = [b / a for _, a, b in part]
+        lo, *_, hi = statistics.quantiles(q, n=10, method="inclusive") if len(q) > 1 else q * 2
         rows.append(f"| {name} | {len(q)} | {statistics.median(q):.2f} | {lo:.2f}-{hi:.2f} | "
                     f"{sum(b for *_, b in part) / sum(a for _, a, _ in part):.2f} |")
     return rows

@@ -382,12 +382,6 @@ def time_scales(obs: pd.DataFrame) -> tuple[float, float]:
 # The correlated component may be as slow as half a ramp: slower wander cannot be told
 # from a misfit of one ramp by any test, and is left to the misfit (reported, never absorbed)
 MAX_CORR_OVER_RAMP = 0.5
-
-
-def longest_correlation_s(dt: float, ramp: float) -> float:
-    """The longest correlation time the wander may take [s], given the recordings'
-    sampling interval ``dt`` and ramp duration ``ramp`` (:func:`time_scales`)."""
-    return max(MAX_CORR_OVER_RAMP * ramp, dt)
 MIN_REML_DOF = 8  # residual degrees of freedom a series keeps after the projection
 # Starts of the drift, as its end value over the series' span in units of the residual's
 # RMS.  The likelihood is flat in log drift while the drift is far below the white noise:
@@ -405,6 +399,12 @@ DRIFT_STARTS = (0.01, 0.3)
 # digits of the recordings)
 NOISE_TIE = 3.84
 RIVAL_FACTOR = 2.0
+
+
+def longest_correlation_s(dt: float, ramp: float) -> float:
+    """The longest correlation time the wander may take [s], given the recordings'
+    sampling interval ``dt`` and ramp duration ``ramp`` (:func:`time_scales`)."""
+    return max(MAX_CORR_OVER_RAMP * ramp, dt)
 
 
 def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,

@@ -50,9 +50,9 @@ AT_BOUND = 0.99
 
 
 def slowest_wander_doubt(status: str, rem: dict, nm: NoiseModel) -> str:
-    """Why a verdict of no (further) systematic misfit cannot be trusted, or '': without a repeated
-    cycle, the residual passes as noise only with a wander that dominates the white noise
-    and is as slow as the noise model allows (half a ramp,
+    """Why a verdict of no (further) systematic misfit cannot be trusted, or '': without a
+    repeated cycle, the residual passes as noise only with a wander that dominates the white
+    noise and is as slow as the noise model allows (half a ramp,
     :func:`diagnosis.noise.longest_correlation_s`). The fit pressing against that bound says
     the residual wants a slower wander still, which is where wander and a smooth misfit of
     one ramp cannot be told apart (loading and unloading of one cycle are not a repetition
