@@ -36,7 +36,7 @@ def main() -> None:
     both = sorted(set(old) & set(new))
     kinds: dict = {}
     changed = ["| case | kind | right answer | old verdict (status) | new verdict (status) |",
-               "|---|---|---|---|---|"]
+               "|---|---|---|---|---|"]  # ", cannot tell" after a status that carried it
     for c in both:
         o, n = old[c], new[c]
         k = kinds.setdefault(n["kind"], [0, 0, 0])
@@ -44,8 +44,8 @@ def main() -> None:
         k[1] += bool(o["correct"])
         k[2] += bool(n["correct"])
         if any(o.get(f) != n.get(f) for f in ("correct", "verdict", "status", "cannot_tell")):
-            changed.append(f"| {c} | {n['kind']} | {n['expected']} | {o['verdict']} "
-                           f"({o['status']}) | {n['verdict']} ({n['status']}) |")
+            changed.append(f"| {c} | {n['kind']} | {n['expected']} | {_said(o)} | "
+                           f"{_said(n)} |")
     print(f"{len(both)} cases in both runs\n")
     print("| kind | cases | right, old | right, new |\n|---|---|---|---|")
     for kind, (n, r_old, r_new) in kinds.items():
@@ -53,6 +53,13 @@ def main() -> None:
     print("\n" + "\n".join(changed))
     print("\n" + "\n".join(agreement(old, new, both)))
     print("\n" + "\n".join(timing(old, new, both)))
+
+
+def _said(case: dict) -> str:
+    """A run's answer on one case: the verdict, its status and whether it said *cannot
+    tell*, so that a row whose only change is the doubt shows it."""
+    doubt = ", cannot tell" if case.get("cannot_tell") else ""
+    return f"{case['verdict']} ({case['status']}{doubt})"
 
 
 NUMBERS = ("rms_before", "rms_after", "misfit")
