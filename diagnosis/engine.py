@@ -59,6 +59,7 @@ from .notes import (
     edge_notes,
     noise_doubt,
     slowest_wander_doubt,
+    threshold_doubt,
     wander_doubt,
 )
 from .remaining import remaining, systematic_basis, trend_change
@@ -91,7 +92,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-18"
+ENGINE_VERSION = "2026.11-open-world-19"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
@@ -345,7 +346,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     undetermined, rivals = noise_doubt(rounds, status, chosen, _rival_outcome(
         obs, base, current, in_model, final_noise, alpha, bic_margin))
     doubt = "; ".join(filter(None, [doubt, slowest_wander_doubt(status, rem, final_noise),
-                                    undetermined]))
+                                    threshold_doubt(status, rem, alpha), undetermined]))
     if rivals and not undetermined:
         notes.append("the recordings leave the slow part of the noise undetermined in "
                      f"{', '.join(p['where'] for p in rivals)} (two noise models neither "

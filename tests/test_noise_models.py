@@ -411,3 +411,38 @@ def test_a_misfit_taken_for_the_slowest_wander_is_a_cannot_tell():
             "none", branches, fit_noise(_cycled_obs(white, per_ramp), white)))
     assert said >= 15
     assert white_said == 0
+
+
+def test_a_repeated_misfit_between_the_two_bars_is_a_cannot_tell():
+    """Two cycles of 12 points per ramp, white noise of SD 1 whose level is known: the test
+    of a misfit repeated at every cycle (10 columns) needs chi2 > 29.6 for p < 1e-3 and a
+    gain > 10 ln 48 + 10 = 48.7 for the BIC margin.  A repeated half sine per ramp of
+    amplitude 1.2, opposite on loading and unloading, falls between the two bars in most
+    draws (median gain 38.8; measured: 13 of 20 draws); `none` or `explained` then carry a
+    *cannot tell*, a status that already names a misfit does not.  White noise alone
+    raises it in none of 20 (its rate is alpha = 1e-3 per case); a misfit of amplitude 3
+    passes both bars (gain > 48.7 in every draw) and raises none either."""
+    from diagnosis.noise import ChannelNoise, NoiseModel
+    from diagnosis.notes import threshold_doubt
+    from diagnosis.remaining import remaining
+
+    per_ramp, n = 12, 48
+    obs = _cycled_obs(np.zeros(n), per_ramp)
+    nm = NoiseModel(obs, {("compression_tension", "stress"): ChannelNoise(white=1.0)})
+    x = np.linspace(0.0, 1.0, per_ramp)
+    shape = np.tile(np.concatenate([np.sin(np.pi * x), -np.sin(np.pi * x[::-1])]), 2)
+    said = {0.0: 0, 1.2: 0, 3.0: 0}
+    for seed in range(20):
+        white = np.random.default_rng(seed).normal(size=n)
+        for amp in said:
+            rem = remaining(obs, amp * shape + white, nm)
+            assert rem["reproducible"]["dof"] == 10
+            doubt = threshold_doubt("explained", rem, 1e-3)
+            said[amp] += bool(doubt)
+            if doubt:
+                assert 29.6 < rem["reproducible"]["gain"] < 10 * math.log(n) + 10
+                assert "the misfit repeated at every cycle" in doubt
+                assert threshold_doubt("partially explained", rem, 1e-3) == ""
+    assert said[1.2] >= 10
+    assert said[0.0] == 0
+    assert said[3.0] == 0
