@@ -322,15 +322,14 @@ class _Series:
     def restrict(self, B: np.ndarray) -> None:
         """Project the columns of ``B`` (rows of the whole table) out of this series'
         likelihood: an orthonormal basis of their span on this series' rows.  Skipped when
-        they would leave fewer than ``MIN_REML_DOF`` degrees of freedom or fewer than
-        ``MIN_REML_FRACTION`` of the rows."""
+        they would leave fewer than ``MIN_REML_DOF`` degrees of freedom."""
         Bs = B[self.rows]
         Bs = Bs[:, np.abs(Bs).max(axis=0) > 0] if Bs.size else Bs
         if not Bs.shape[1]:
             return
         u, sv, _ = np.linalg.svd(Bs, full_matrices=False)
         q = u[:, sv > 1e-10 * sv[0]]
-        if len(self.rows) - q.shape[1] >= max(MIN_REML_DOF, MIN_REML_FRACTION * len(self.rows)):
+        if len(self.rows) - q.shape[1] >= MIN_REML_DOF:
             self.basis = q
 
     def nll(self, ch: ChannelNoise, r: np.ndarray) -> float:
@@ -384,16 +383,6 @@ def time_scales(obs: pd.DataFrame) -> tuple[float, float]:
 # from a misfit of one ramp by any test, and is left to the misfit (reported, never absorbed)
 MAX_CORR_OVER_RAMP = 0.5
 MIN_REML_DOF = 8  # residual degrees of freedom a series keeps after the projection
-# ... and the share of its rows it keeps: a short series that would give more than half of
-# its rows to the projected columns has its noise fitted by plain ML instead.  Measured
-# (draws of the rig's noise alone on the open-world cases' own series, with the
-# reproducible-misfit, trend and three model columns projected): a 22-row torque series
-# keeping 9 degrees of freedom came out at a median 0.92 of its true SD and below half of
-# it in 3 % of the draws (axial force 5 %), plain ML at 1.00 and never below 0.91; a noise
-# judged 2.5x too small made a control's torque offset an effect (open-world-18, seed 2,
-# world117).  The price: on such a series a smooth misfit can be taken for wander, which
-# makes the tests more cautious, never bolder.
-MIN_REML_FRACTION = 0.5
 # Starts of the drift, as its end value over the series' span in units of the residual's
 # RMS.  The likelihood is flat in log drift while the drift is far below the white noise:
 # a fit started there stays there even when a drift of a tenth of the RMS is more likely
