@@ -92,7 +92,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-19"
+ENGINE_VERSION = "2026.11-open-world-21"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
@@ -611,9 +611,11 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list,
             ctx.errors.append(f"{type(exc).__name__}: {exc}")
             continue
         k = len(ctx.lib[e].names)
-        lrt = ctx.chi2(noise, without) - ctx.chi2(noise, current)
+        z_without = noise.whiten(without.residual(ctx.obs))
+        z_with = noise.whiten(current.residual(ctx.obs))
+        lrt = float(z_without @ z_without - z_with @ z_with)
         needed = ctx.needed(k, max(len(chosen), 1),
-                            noise.nu_level() if noise is not None else math.inf)
+                            noise.nu_of_gain(z_without**2 - z_with**2))
         if rival is not None:
             lrt_rival = ctx.chi2(rival, without) - ctx.chi2(rival, current)
             if (lrt_rival < needed) != (lrt < needed):

@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 
 from . import locate as loc
-from .noise import lrt_p_value, nu_eff
+from .noise import lrt_p_value, nu_gain
 from .series import neutral_of
 
 KNOTS = 5  # knots of the generic misfit per curve/channel/branch (plus the neutral value)
@@ -143,11 +143,15 @@ def systematic_basis(obs: pd.DataFrame, prediction: np.ndarray | None = None) ->
 
 
 def _lrt(Bw: np.ndarray, z: np.ndarray, n: int, alpha: float, bic_margin: float,
-         nu: float = math.inf) -> dict:
+         nu=math.inf) -> dict:
     """Gain of the columns ``Bw`` on the whitened residual ``z``: a chi-square test for a
-    known noise, an F test when the noise was estimated with ``nu`` degrees of freedom."""
+    known noise, an F test when the noise was estimated with ``nu`` degrees of freedom
+    (a number, or a function of the per-row gain: :func:`diagnosis.noise.nu_gain`)."""
     coef, _, rank, _ = np.linalg.lstsq(Bw, z, rcond=None)
-    gain = float(z @ z - np.sum((z - Bw @ coef) ** 2))
+    fitted = Bw @ coef
+    gain = float(z @ z - np.sum((z - fitted) ** 2))
+    if callable(nu):
+        nu = nu(fitted**2)
     p = lrt_p_value(gain, rank, nu) if rank else 1.0
     return {"gain": gain, "dof": int(rank), "p_value": p, "significant": bool(
         rank and p < alpha and gain > rank * math.log(n) + bic_margin)}
@@ -161,7 +165,11 @@ def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 
     z = noise.whiten(np.asarray(residual, float))
     table = loc.locate(obs, z, 1.0, sigma_dof=noise.dof)
     located = loc.summary(table)["located"]
-    nu = nu_eff(obs, np.asarray(noise.dof, float))
+    dof = np.asarray(noise.dof, float)
+
+    def nu(gain: np.ndarray) -> float:  # weighted by the series that carry the gain
+        return nu_gain(obs, dof, gain)
+
     B, how = reproducible_basis(obs)
     rep = {"repeats": how, "gain": 0.0, "dof": 0, "p_value": 1.0, "significant": False}
     if B.shape[1]:

@@ -222,15 +222,17 @@ def second_start(scored: list, best, needed: float):
 
 def compare(ctx: Context, rnd: Round, current: Fit, m: int, noise) -> list:
     """The round's table under ``noise``: chi2, LRT p, BIC and significance per fit."""
-    c0 = ctx.chi2(noise, current)
+    z0 = noise.whiten(current.residual(ctx.obs))
+    c0 = float(z0 @ z0)
     n = len(ctx.obs)
-    nu = noise.nu_level()
     table = []
     for e, f in rnd.fits.items():
         k = len(ctx.lib[e].names)
-        c1 = ctx.chi2(noise, f)
+        z1 = noise.whiten(f.residual(ctx.obs))
+        c1 = float(z1 @ z1)
         lrt = c0 - c1
-        p = lrt_p_value(lrt, k, nu)
+        # the F test's noise degrees of freedom, weighted by where the gain lies
+        p = lrt_p_value(lrt, k, noise.nu_of_gain(z0**2 - z1**2))
         dbic = (c1 + (current.k + k) * math.log(n)) - (c0 + current.k * math.log(n))
         table.append({"effect": e, "chi2": c1, "lrt": lrt, "p_value": p, "delta_bic": dbic,
                       "significant": bool(p < ctx.alpha / m and -dbic > ctx.bic_margin),

@@ -446,3 +446,33 @@ def test_a_repeated_misfit_between_the_two_bars_is_a_cannot_tell():
     assert said[1.2] >= 10
     assert said[0.0] == 0
     assert said[3.0] == 0
+
+
+def test_the_f_test_weighs_the_noise_by_where_the_gain_lies():
+    """``nu_gain``: two series of 30 and 20 points whose noises have 27 and 17 degrees of
+    freedom.  1 / nu = sum_s w_s^2 / nu_s with w_s the share of the gain on series s,
+    capped at the row-weighted value 1 / ((30/50)^2 / 27 + (20/50)^2 / 17) = 43.97: a gain
+    all on the short series is tested with its 17, all on the long one with its 27, one
+    split evenly with 1 / (0.25 / 27 + 0.25 / 17) = 41.7, one in proportion to the
+    series' dof (the largest value, 27 + 17 = 44) with the cap; a negative share counts
+    as none."""
+    from diagnosis.noise import nu_eff, nu_gain
+
+    rng = np.random.default_rng(1)
+    a = _obs(np.arange(30.0), rng.normal(size=30), 10)
+    b = _obs(np.arange(20.0), rng.normal(size=20), 10).assign(curve="torsion",
+                                                              test="torsion",
+                                                              channel="torque")
+    obs = pd.concat([a, b], ignore_index=True)
+    dof = np.r_[np.full(30, 27.0), np.full(20, 17.0)]
+    rows = 1.0 / (0.6**2 / 27 + 0.4**2 / 17)
+    assert nu_eff(obs, dof) == pytest.approx(rows, rel=1e-12)
+    short = np.r_[np.zeros(30), np.full(20, 0.5)]
+    assert nu_gain(obs, dof, short) == pytest.approx(17.0, rel=1e-12)
+    even = np.r_[np.full(30, 1.0 / 30), np.full(20, 1.0 / 20)]
+    assert nu_gain(obs, dof, even) == pytest.approx(1.0 / (0.25 / 27 + 0.25 / 17), rel=1e-12)
+    assert nu_gain(obs, dof, np.r_[np.ones(30), np.zeros(20)]) == pytest.approx(27.0)
+    by_dof = np.r_[np.full(30, 27.0 / 30), np.full(20, 17.0 / 20)]
+    assert nu_gain(obs, dof, by_dof) == pytest.approx(rows, rel=1e-12)
+    assert nu_gain(obs, dof, np.r_[np.ones(30), -np.ones(20)]) == pytest.approx(27.0)
+    assert nu_gain(obs, dof, np.r_[np.full(30, -1.0), np.ones(20)]) == pytest.approx(17.0)
