@@ -611,11 +611,8 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list,
             ctx.errors.append(f"{type(exc).__name__}: {exc}")
             continue
         k = len(ctx.lib[e].names)
-        z_without = noise.whiten(without.residual(ctx.obs))
-        z_with = noise.whiten(current.residual(ctx.obs))
-        lrt = float(z_without @ z_without - z_with @ z_with)
-        needed = ctx.needed(k, max(len(chosen), 1),
-                            noise.nu_of_gain(z_without**2 - z_with**2))
+        lrt = ctx.chi2(noise, without) - ctx.chi2(noise, current)
+        needed = ctx.needed(k, max(len(chosen), 1), ctx.nu(noise, without, current))
         if rival is not None:
             lrt_rival = ctx.chi2(rival, without) - ctx.chi2(rival, current)
             if (lrt_rival < needed) != (lrt < needed):

@@ -21,8 +21,8 @@ it (white noise, wander correlated over at most half a ramp, drift from the tare
 The noise model is estimated by restricted ML with these columns and the model's own
 parameters projected out (:func:`systematic_basis`, :func:`diagnosis.noise.fit_noise`), so
 it cannot absorb the misfit the tests look for; on short series that leaves few degrees of
-freedom, so every test here is an F test with the noise's own (``NoiseModel.dof``).
-"""
+freedom, so every test here is an F test with the noise's own (``NoiseModel.dof``),
+weighted by the series that carry the test's gain (:func:`diagnosis.noise.nu_gain`)."""
 
 from __future__ import annotations
 

@@ -89,6 +89,15 @@ class Context:
         z = noise.whiten(f.residual(self.obs))
         return float(z @ z)
 
+    def nu(self, noise, f0: Fit, f1: Fit) -> float:
+        """The F test's noise degrees of freedom for the gain of ``f1`` over ``f0`` under
+        ``noise``, weighted by the series the gain lies on (``NoiseModel.nu_of_gain``);
+        infinite without a noise model."""
+        if noise is None:
+            return math.inf
+        z0, z1 = (noise.whiten(f.residual(self.obs)) for f in (f0, f1))
+        return noise.nu_of_gain(z0**2 - z1**2)
+
     def needed(self, k: int, m: int, nu: float = math.inf) -> float:
         """The chi-square reduction k extra parameters need to be significant under a
         noise estimated with ``nu`` degrees of freedom (infinite: the chi-square bar, the
@@ -222,17 +231,14 @@ def second_start(scored: list, best, needed: float):
 
 def compare(ctx: Context, rnd: Round, current: Fit, m: int, noise) -> list:
     """The round's table under ``noise``: chi2, LRT p, BIC and significance per fit."""
-    z0 = noise.whiten(current.residual(ctx.obs))
-    c0 = float(z0 @ z0)
+    c0 = ctx.chi2(noise, current)
     n = len(ctx.obs)
     table = []
     for e, f in rnd.fits.items():
         k = len(ctx.lib[e].names)
-        z1 = noise.whiten(f.residual(ctx.obs))
-        c1 = float(z1 @ z1)
+        c1 = ctx.chi2(noise, f)
         lrt = c0 - c1
-        # the F test's noise degrees of freedom, weighted by where the gain lies
-        p = lrt_p_value(lrt, k, noise.nu_of_gain(z0**2 - z1**2))
+        p = lrt_p_value(lrt, k, ctx.nu(noise, current, f))
         dbic = (c1 + (current.k + k) * math.log(n)) - (c0 + current.k * math.log(n))
         table.append({"effect": e, "chi2": c1, "lrt": lrt, "p_value": p, "delta_bic": dbic,
                       "significant": bool(p < ctx.alpha / m and -dbic > ctx.bic_margin),

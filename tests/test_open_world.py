@@ -449,7 +449,7 @@ def test_the_effect_just_added_is_re_tested_from_the_joint_fit(monkeypatch):
 
     monkeypatch.setattr(eng, "fit", fit)
     ctx = SimpleNamespace(sim=None, obs=None, weights=None, lib=lib, max_nfev=15,
-                          chi2=lambda noise, f: f.chi2,
+                          chi2=lambda noise, f: f.chi2, nu=lambda noise, f0, f1: np.inf,
                           needed=lambda k, m, nu: chi2_needed(k, m, 300, nu=nu))
     joint = SimpleNamespace(chi2=100.0, values={Param.parse(k): v for k, v in {
         "mu_0": 1.9, "log10_k": -0.35, "stretch_offset": -0.002, "nu0": 0.4902}.items()})
