@@ -351,6 +351,15 @@ def test_an_effect_tested_under_a_noise_estimated_from_the_same_recordings():
     assert np.mean(stats.chi2.sf(lrt, 1) < 0.01) > 0.015
 
 
+def _stress_and_torque(rng) -> pd.DataFrame:
+    """Two series of white noise: a stress of 30 points and a torque of 20."""
+    a = _obs(np.arange(30.0), rng.normal(size=30), 10)
+    b = _obs(np.arange(20.0), rng.normal(size=20), 10).assign(curve="torsion",
+                                                              test="torsion",
+                                                              channel="torque")
+    return pd.concat([a, b], ignore_index=True)
+
+
 def test_noise_model_degrees_of_freedom_for_the_tests():
     """``NoiseModel.nu_level``: two series of 30 and 20 points, 3 columns projected out of
     each (REML), so nu_s = 27 and 17, and 1 / nu = (30/50)^2 / 27 + (20/50)^2 / 17; nothing
@@ -360,11 +369,7 @@ def test_noise_model_degrees_of_freedom_for_the_tests():
     from diagnosis.noise import ChannelNoise, NoiseModel
 
     rng = np.random.default_rng(1)
-    a = _obs(np.arange(30.0), rng.normal(size=30), 10)
-    b = _obs(np.arange(20.0), rng.normal(size=20), 10).assign(curve="torsion",
-                                                              test="torsion",
-                                                              channel="torque")
-    obs = pd.concat([a, b], ignore_index=True)
+    obs = _stress_and_torque(rng)
     r = obs["value"].to_numpy()
     B = np.c_[np.ones(50), np.arange(50.0), rng.normal(size=50)]
     nm = fit_noise(obs, r, drift=False, correlated=False, systematic=B)
@@ -459,11 +464,7 @@ def test_the_f_test_weighs_the_noise_by_where_the_gain_lies():
     from diagnosis.noise import nu_eff, nu_gain
 
     rng = np.random.default_rng(1)
-    a = _obs(np.arange(30.0), rng.normal(size=30), 10)
-    b = _obs(np.arange(20.0), rng.normal(size=20), 10).assign(curve="torsion",
-                                                              test="torsion",
-                                                              channel="torque")
-    obs = pd.concat([a, b], ignore_index=True)
+    obs = _stress_and_torque(rng)
     dof = np.r_[np.full(30, 27.0), np.full(20, 17.0)]
     rows = 1.0 / (0.6**2 / 27 + 0.4**2 / 17)
     assert nu_eff(obs, dof) == pytest.approx(rows, rel=1e-12)
