@@ -155,15 +155,27 @@ def noise_dof(obs: pd.DataFrame, residual) -> np.ndarray:
     return _noise(obs, residual)[1]
 
 
+def _per_series(obs: pd.DataFrame, dof: np.ndarray, *per_row: np.ndarray) -> list:
+    """Per (curve, channel) series of ``obs`` (positional index): (its noise dof, the sum
+    over its rows of each of the ``per_row`` arrays)."""
+    return [(float(dof[g.index[0]]), [float(a[g.index].sum()) for a in per_row])
+            for _, g in obs.groupby(["curve", "channel"], sort=False)]
+
+
+def _nu_of(shares: list) -> float:
+    """``1 / sum_s (w_s / sum w)^2 / nu_s`` of (nu_s, w_s) pairs (infinite when every
+    nu_s is, or the weights sum to zero)."""
+    total = sum(w for _, w in shares)
+    inv = sum((w / total) ** 2 / d for d, w in shares) if total > 0 else 0.0
+    return 1.0 / inv if inv > 0 else math.inf
+
+
 def nu_eff(obs: pd.DataFrame, dof: np.ndarray) -> float:
     """Effective degrees of freedom of a noise estimated per series with ``dof`` (per row,
     infinite where the noise is known): ``1 / nu = sum_s (n_s / n)^2 / nu_s`` over the
     (curve, channel) series (as in :func:`diagnosis.locate.locate`)."""
-    n = len(obs)
-    dof = np.asarray(dof, float)
-    inv = sum((len(g) / n) ** 2 / float(dof[g.index[0]])
-              for _, g in obs.groupby(["curve", "channel"], sort=False))
-    return 1.0 / inv if inv > 0 else math.inf
+    series = _per_series(obs, np.asarray(dof, float), np.ones(len(obs)))
+    return _nu_of([(d, w) for d, (w,) in series])
 
 
 def nu_gain(obs: pd.DataFrame, dof: np.ndarray, gain: np.ndarray) -> float:
@@ -180,16 +192,13 @@ def nu_gain(obs: pd.DataFrame, dof: np.ndarray, gain: np.ndarray) -> float:
     tested with nu = 46 (open-world-18, seed 2, world117: a false alarm).  The cap keeps
     the test never bolder than the row-weighted one."""
     obs = obs.reset_index(drop=True)
-    dof = np.asarray(dof, float)
-    g = np.asarray(gain, float)
-    share = [(max(float(g[grp.index].sum()), 0.0), float(dof[grp.index[0]]))
-             for _, grp in obs.groupby(["curve", "channel"], sort=False)]
-    total = sum(w for w, _ in share)
-    rows = nu_eff(obs, dof)
-    if total <= 0 or not np.isfinite(total):
+    series = _per_series(obs, np.asarray(dof, float), np.ones(len(obs)),
+                         np.asarray(gain, float))
+    rows = _nu_of([(d, n) for d, (n, _) in series])
+    gains = [(d, max(g, 0.0)) for d, (_, g) in series]
+    if not np.isfinite(sum(w for _, w in gains)):
         return rows
-    inv = sum((w / total) ** 2 / d for w, d in share)
-    return min(rows, 1.0 / inv if inv > 0 else math.inf)
+    return min(rows, _nu_of(gains))
 
 
 def lrt_p_value(lrt: float, k: int, nu: float = math.inf) -> float:

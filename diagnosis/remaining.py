@@ -143,16 +143,14 @@ def systematic_basis(obs: pd.DataFrame, prediction: np.ndarray | None = None) ->
 
 
 def _lrt(Bw: np.ndarray, z: np.ndarray, n: int, alpha: float, bic_margin: float,
-         nu=math.inf) -> dict:
-    """Gain of the columns ``Bw`` on the whitened residual ``z``: a chi-square test for a
-    known noise, an F test when the noise was estimated with ``nu`` degrees of freedom
-    (a number, or a function of the per-row gain: :func:`diagnosis.noise.nu_gain`)."""
+         nu_of) -> dict:
+    """Gain of the columns ``Bw`` on the whitened residual ``z``: an F test with the
+    noise's degrees of freedom ``nu_of(per-row gain)`` (:func:`diagnosis.noise.nu_gain`;
+    a chi-square test where it is infinite, the noise known)."""
     coef, _, rank, _ = np.linalg.lstsq(Bw, z, rcond=None)
     fitted = Bw @ coef
     gain = float(z @ z - np.sum((z - fitted) ** 2))
-    if callable(nu):
-        nu = nu(fitted**2)
-    p = lrt_p_value(gain, rank, nu) if rank else 1.0
+    p = lrt_p_value(gain, rank, nu_of(fitted**2)) if rank else 1.0
     return {"gain": gain, "dof": int(rank), "p_value": p, "significant": bool(
         rank and p < alpha and gain > rank * math.log(n) + bic_margin)}
 
