@@ -484,7 +484,8 @@ def _what_remains(obs, current: Fit, stated, alpha, bic_margin):
 def _remains_under(obs, current: Fit, nm: NoiseModel, alpha, bic_margin) -> dict:
     """What ``current`` leaves systematic under the noise model ``nm``."""
     return remaining(obs, current.residual(obs), nm, alpha=alpha, bic_margin=bic_margin,
-                     prediction=current.prediction)
+                     prediction=current.prediction, jacobian=current.jacobian,
+                     names=current.names)
 
 
 def _noise_of(obs, f: Fit, stated) -> NoiseModel:

@@ -155,10 +155,61 @@ def _lrt(Bw: np.ndarray, z: np.ndarray, n: int, alpha: float, bic_margin: float,
         rank and p < alpha and gain > rank * math.log(n) + bic_margin)}
 
 
+# Parameters that are the rig's, not the material's: one per channel already, never split
+RIG_PARAMETERS = ("stretch_offset", "force_offset", "torque_offset")
+
+
+def test_groups(obs: pd.DataFrame) -> np.ndarray:
+    """Per row, whether it belongs to a shear test (torsion, simple shear) rather than to
+    compression/tension: the two kinds of test a consistent material must both explain."""
+    return obs["curve"].astype(str).str.startswith(("torsion", "simple_shear")).to_numpy()
+
+
+def split_test(obs: pd.DataFrame, z: np.ndarray, noise, jacobian: np.ndarray, names: list,
+               alpha: float, bic_margin: float, nu_of) -> dict:
+    """Whether the shear tests ask for other material parameters than compression/tension:
+    the score (Lagrange-multiplier) test of the final model against the same model whose
+    material parameters (``names`` but the rig's offsets) take other values in the shear
+    tests, linearised at the fit (one Gauss-Newton step: no solve).  An isotropic material
+    and a library effect describe every test with one set of parameters; a fibre family
+    along the axis, a stiffness drifting between the tests or a set left by the first one
+    do not, and a misfit each test's own fit hides shows here.  ``z``: the whitened
+    residual; the gain is what the split columns remove beyond the model's own (the
+    F test of :func:`_lrt`'s kind, with ``nu_of`` of the gain's rows).  Not applicable
+    (dof 0) with only one kind of test.  ``steps``: per split parameter, how much its
+    shear value differs (the Gauss-Newton step)."""
+    out = {"gain": 0.0, "dof": 0, "p_value": 1.0, "significant": False, "steps": {}}
+    shear = test_groups(obs)
+    if jacobian is None or not shear.any() or shear.all():
+        return out
+    J = np.asarray(jacobian, float)
+    cols = [j for j, n in enumerate(names) if str(n) not in RIG_PARAMETERS
+            and np.any(J[shear, j] != 0) and np.any(J[~shear, j] != 0)]
+    if not cols or not np.isfinite(J).all():
+        return out
+    Jw = noise.whiten_jacobian(J)
+    Sw = noise.whiten_jacobian(J[:, cols] * shear[:, None])
+    # the split columns and the residual beyond the model's own columns
+    q, _ = np.linalg.qr(Jw)
+    r = z - q @ (q.T @ z)
+    S = Sw - q @ (q.T @ Sw)
+    coef, _, rank, _ = np.linalg.lstsq(S, r, rcond=None)
+    fitted = S @ coef
+    gain = float(r @ r - np.sum((r - fitted) ** 2))
+    p = lrt_p_value(gain, rank, nu_of(fitted**2)) if rank else 1.0
+    out.update(gain=gain, dof=int(rank), p_value=p, significant=bool(
+        rank and p < alpha and gain > rank * math.log(len(z)) + bic_margin),
+        steps={str(names[j]): -float(c) for j, c in zip(cols, coef, strict=True)})
+    return out
+
+
 def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 1e-3,
-              bic_margin: float = 10.0, prediction: np.ndarray | None = None) -> dict:
+              bic_margin: float = 10.0, prediction: np.ndarray | None = None,
+              jacobian: np.ndarray | None = None, names: list = ()) -> dict:
     """The tests on ``residual`` (model minus recorded) under ``noise``; with the model's
-    ``prediction``, also whether the stiffness trends with time (:func:`trend_basis`)."""
+    ``prediction``, also whether the stiffness trends with time (:func:`trend_basis`);
+    with its ``jacobian`` (columns ``names``), whether the kinds of test ask for other
+    parameters (:func:`split_test`, reported beside the others)."""
     obs = obs.reset_index(drop=True)
     z = noise.whiten(np.asarray(residual, float))
     table = loc.locate(obs, z, 1.0, sigma_dof=noise.dof)
@@ -185,6 +236,7 @@ def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 
             if tt > 0:
                 trend.update(change=-float(Tw[:, 0] @ z) / tt, change_se=1.0 / math.sqrt(tt),
                              span_s=trend_span(obs))
-    return {"located": located, "reproducible": rep, "trend": trend,
+    split = split_test(obs, z, noise, jacobian, list(names), alpha, bic_margin, nu)
+    return {"located": located, "reproducible": rep, "trend": trend, "split": split,
             "systematic": bool(located) or rep["significant"] or trend["significant"],
             "table": table}

@@ -228,6 +228,46 @@ def test_one_rate_stiffness_trend(seed):
     assert not clean["trend"]["significant"]
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_shear_tests_asking_for_other_parameters(seed):
+    """The split test on a linear model, where the score test is the likelihood ratio
+    exactly: two material columns (p and p x^2 along each ramp) and a rig offset on the
+    compression/tension rows only.  With the material parameters 0.2 apart between the
+    tests, the gain equals the chi-square of the joint least-squares fit minus those of
+    the two tests fitted alone (an independent reference: numpy's lstsq per test), to
+    1e-6; the steps are the fitted differences (torsion minus compression/tension), the
+    offset is never split, and with one set of parameters the test passes."""
+    from diagnosis.remaining import remaining
+
+    rng = np.random.default_rng(seed)
+    obs, p = _two_curves(40, 2)
+    x = np.tile(np.linspace(0.0, 1.0, 40), len(obs) // 40)
+    shear = obs["curve"].eq("torsion").to_numpy()
+    J = np.column_stack([p, p * x**2, (~shear).astype(float)])
+    names = ["mu_0", "alpha_0", "force_offset"]
+    nm = fit_noise(obs, np.zeros(len(obs)), stated={"stress": 0.1}, drift=False)
+    for diff, split in ((0.2, True), (0.0, False)):
+        theta = np.where(shear[:, None], [1.0 + diff, 0.5 + diff, 0.0], [1.0, 0.5, 0.2])
+        y = np.sum(J * theta, axis=1) + rng.normal(0.0, 0.1, len(obs))
+
+        def chi2(rows, cols, y=y):
+            A, b = J[np.ix_(rows, cols)], y[rows]
+            c, *_ = np.linalg.lstsq(A, b, rcond=None)
+            return float(np.sum((A @ c - b) ** 2)) / 0.01, c
+
+        every = np.arange(len(obs))
+        joint, c = chi2(every, [0, 1, 2])
+        alone_ct, c_ct = chi2(every[~shear], [0, 1, 2])
+        alone_t, c_t = chi2(every[shear], [0, 1])
+        out = remaining(obs, J @ c - y, nm, jacobian=J, names=names)["split"]
+        assert out["dof"] == 2
+        assert out["gain"] == pytest.approx(joint - alone_ct - alone_t, rel=1e-6)
+        assert set(out["steps"]) == {"mu_0", "alpha_0"}
+        assert out["steps"]["mu_0"] == pytest.approx(c_t[0] - c_ct[0], rel=1e-6)
+        assert out["steps"]["alpha_0"] == pytest.approx(c_t[1] - c_ct[1], rel=1e-6)
+        assert out["significant"] is split
+
+
 @pytest.mark.parametrize("seed", [9, 16])
 def test_noise_model_finds_a_drift_its_first_start_cannot(seed, monkeypatch):
     """White (SD 1) + wander (SD 0.5, 5 s) + a drift of 0.01 per s over 120 s at 0.5 s: the
