@@ -30,8 +30,9 @@ Outcome: ``verdict`` is ``none``, an effect, effects joined by ``+`` (alphabetic
 ``partially explained`` (they leave a systematic misfit, having at least halved the RMS
 misfit, and no stiffness trend with time) or ``unexplained`` (a systematic misfit no
 candidate removes, that the best model of the library does not halve, or that holds a
-trend no library effect makes: then ``tried`` holds that model's effects and the closest
-candidates are listed).
+trend no library effect makes, or shear tests that ask for other material parameters than
+compression/tension: then ``tried`` holds that model's effects and the closest candidates
+are listed).
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ from .notes import (
     threshold_doubt,
     wander_doubt,
 )
-from .remaining import remaining, systematic_basis, trend_change
+from .remaining import remaining, split_words, systematic_basis, trend_change
 from .screen import (
     AT_DESIGN,
     IN_COMPLIANCE,
@@ -92,7 +93,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-21"
+ENGINE_VERSION = "2026.11-open-world-22"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
@@ -327,6 +328,14 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                         "that no effect of the library "
                         "makes, and the effects fitted beside it may stand in for part of "
                         "it, so none is named" if trend else ""))
+    if rem["split"]["significant"]:
+        notes.append("the shear tests ask for other material parameters than compression/"
+                     f"tension ({split_words(rem['split'], current.values)}): one isotropic "
+                     "material of the library does not describe both kinds of test (a fibre "
+                     "family, a stiffness changing between the tests or a set left by the "
+                     "first may)" + (", and an effect fitted to both would stand in for "
+                                     "what tells them apart, so none is named" if tried
+                                     else ""))
     drift = {}
     if trend:  # the physics the library left out, modelled: does it take the misfit?
         with sharing(sim, comm):
@@ -446,7 +455,7 @@ def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np
 
 
 def decide(chosen: list, systematic: bool, rms_before: float, rms_after: float, *,
-           trend: bool = False) -> tuple[str, list, list]:
+           trend: bool = False, split: bool = False) -> tuple[str, list, list]:
     """Status, named effects and merely tried effects of a diagnosis from the effects
     selected, whether the final model leaves a systematic misfit (and among it a
     stiffness ``trend`` with time), and the RMS misfit (in noise SDs) of the base and the
@@ -454,12 +463,16 @@ def decide(chosen: list, systematic: bool, rms_before: float, rms_after: float, 
     ``rms_after <= EXPLAINS_FRACTION * rms_before`` and that misfit holds no trend: a
     stiffness changing with time is physics outside the library (no effect of it changes
     with time alone), and the history effects and offsets fitted beside it may stand in
-    for part of it (softening between cycles, relaxation), so none of them is named."""
+    for part of it (softening between cycles, relaxation), so none of them is named.  The
+    same when the shear tests ask for other material parameters than compression/tension
+    (``split``, :func:`diagnosis.remaining.split_test`): every effect of the library
+    describes all tests with one set of parameters, so the physics that tells them apart
+    is not among them, and a named effect would stand in for it."""
     if not chosen:
         return ("unexplained" if systematic else "none"), [], []
     if not systematic:
         return "explained", list(chosen), []
-    if rms_after <= EXPLAINS_FRACTION * rms_before and not trend:
+    if rms_after <= EXPLAINS_FRACTION * rms_before and not trend and not split:
         return "partially explained", list(chosen), []
     return "unexplained", [], list(chosen)
 
@@ -472,7 +485,8 @@ def _status_under(obs, base: Fit, current: Fit, in_model: list, nm: NoiseModel,
     sd = nm.sd()
     rms_base, rms_final = base.rms(obs, sd), current.rms(obs, sd)
     return (decide(in_model, rem["systematic"], rms_base, rms_final,
-                   trend=rem["trend"]["significant"]), (rms_base, rms_final))
+                   trend=rem["trend"]["significant"], split=rem["split"]["significant"]),
+            (rms_base, rms_final))
 
 
 def _what_remains(obs, current: Fit, stated, alpha, bic_margin):

@@ -16,7 +16,11 @@ it (white noise, wander correlated over at most half a ramp, drift from the tare
 * **trend**: the stiffness changing with time within the tests of several cycles (the
   prediction scaled by time at one rate for every test), which no library effect does;
   its size is reported as the relative change of the stiffness over the longest such
-  test (``change`` +- ``change_se`` over ``span_s`` seconds).
+  test (``change`` +- ``change_se`` over ``span_s`` seconds);
+* **split**: whether the shear tests ask for other material parameters than
+  compression/tension (:func:`split_test`, a score test on the final fit's Jacobian): an
+  isotropic material and every library effect describe both with one set, a fibre family
+  along the axis, a stiffness changing between the tests or a set left by the first do not.
 
 The noise model is estimated by restricted ML with these columns and the model's own
 parameters projected out (:func:`systematic_basis`, :func:`diagnosis.noise.fit_noise`), so
@@ -203,13 +207,24 @@ def split_test(obs: pd.DataFrame, z: np.ndarray, noise, jacobian: np.ndarray, na
     return out
 
 
+def split_words(split: dict, values: dict) -> str:
+    """The split test of :func:`split_test` in words: 'mu_0 0.52 -> 0.61, alpha_0 -12 ->
+    -9.5 (gain 57.1 on 4 columns, p = 4.3e-08)', compression/tension's value (the joint
+    fit's, to first order) to the shear tests'."""
+    by = {str(k): v for k, v in values.items()}
+    moves = ", ".join(f"{n} {by[n]:.3g} -> {by[n] + d:.3g}" for n, d in split["steps"].items()
+                      if n in by)
+    return f"{moves} (gain {split['gain']:.1f} on {split['dof']} columns, " \
+           f"p = {split['p_value']:.2g})"
+
+
 def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 1e-3,
               bic_margin: float = 10.0, prediction: np.ndarray | None = None,
               jacobian: np.ndarray | None = None, names: list = ()) -> dict:
     """The tests on ``residual`` (model minus recorded) under ``noise``; with the model's
     ``prediction``, also whether the stiffness trends with time (:func:`trend_basis`);
     with its ``jacobian`` (columns ``names``), whether the kinds of test ask for other
-    parameters (:func:`split_test`, reported beside the others)."""
+    parameters (:func:`split_test`)."""
     obs = obs.reset_index(drop=True)
     z = noise.whiten(np.asarray(residual, float))
     table = loc.locate(obs, z, 1.0, sigma_dof=noise.dof)
@@ -238,5 +253,6 @@ def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 
                              span_s=trend_span(obs))
     split = split_test(obs, z, noise, jacobian, list(names), alpha, bic_margin, nu)
     return {"located": located, "reproducible": rep, "trend": trend, "split": split,
-            "systematic": bool(located) or rep["significant"] or trend["significant"],
+            "systematic": bool(located) or rep["significant"] or trend["significant"]
+            or split["significant"],
             "table": table}
