@@ -78,7 +78,8 @@ def slowest_wander_doubt(status: str, rem: dict, nm: NoiseModel) -> str:
 
 def threshold_doubt(status: str, rem: dict, alpha: float) -> str:
     """Why a verdict of no (further) systematic misfit cannot be trusted, or '': a test of
-    what remains (the misfit repeated at every cycle or branch, the stiffness trend) passes
+    what remains (the misfit repeated at every cycle or branch, the stiffness trend, the
+    shear tests' own parameters of :func:`diagnosis.remaining.split_test`) passes
     its likelihood-ratio test at ``alpha`` but not the BIC margin. The two criteria of one
     decision disagree, so whether a systematic misfit remains is not settled by these
     recordings. It matters most where the noise is estimated from few degrees of freedom:
@@ -96,6 +97,9 @@ def threshold_doubt(status: str, rem: dict, alpha: float) -> str:
     each = {"cycles": "cycle", "branches": "branch"}.get(rem["reproducible"]["repeats"])
     tests = [("the misfit repeated at every " + each, rem["reproducible"])] if each else []
     tests.append(("a stiffness change with time", rem["trend"]))
+    if "split" in rem:  # engine open-world-22
+        tests.append(("shear tests that ask for other material parameters than "
+                      "compression/tension", rem["split"]))
     torn = [(what, t) for what, t in tests
             if t["dof"] and t["p_value"] < alpha and not t["significant"]]
     return "; ".join(f"what remains holds {what} by its likelihood-ratio test (p = "
