@@ -330,7 +330,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                         "it, so none is named" if trend else ""))
     if rem["split"]["significant"]:
         notes.append("the shear tests ask for other material parameters than compression/"
-                     f"tension ({split_words(rem['split'], current.values)}): one isotropic "
+                     f"tension (with their own, {split_words(rem['split'])}): one isotropic "
                      "material of the library does not describe both kinds of test (a fibre "
                      "family, a stiffness changing between the tests or a set left by the "
                      "first may)" + (", and an effect fitted to both would stand in for "

@@ -236,7 +236,8 @@ def test_the_shear_tests_asking_for_other_parameters(seed):
     tests, the gain equals the chi-square of the joint least-squares fit minus those of
     the two tests fitted alone (an independent reference: numpy's lstsq per test), to
     1e-6; the steps are the fitted differences (torsion minus compression/tension), the
-    offset is never split, and with one set of parameters the test passes."""
+    change of the torsion's response is its own fit's minus the joint fit's, the offset is
+    never split, and with one set of parameters the test passes."""
     from diagnosis.remaining import remaining
 
     rng = np.random.default_rng(seed)
@@ -259,13 +260,22 @@ def test_the_shear_tests_asking_for_other_parameters(seed):
         joint, c = chi2(every, [0, 1, 2])
         alone_ct, c_ct = chi2(every[~shear], [0, 1, 2])
         alone_t, c_t = chi2(every[shear], [0, 1])
-        out = remaining(obs, J @ c - y, nm, jacobian=J, names=names)["split"]
+        out = remaining(obs, J @ c - y, nm, prediction=J @ c, jacobian=J,
+                        names=names)["split"]
         assert out["dof"] == 2
         assert out["gain"] == pytest.approx(joint - alone_ct - alone_t, rel=1e-6)
         assert set(out["steps"]) == {"mu_0", "alpha_0"}
         assert out["steps"]["mu_0"] == pytest.approx(c_t[0] - c_ct[0], rel=1e-6)
         assert out["steps"]["alpha_0"] == pytest.approx(c_t[1] - c_ct[1], rel=1e-6)
         assert out["significant"] is split
+        # the torsion's response with its own parameters against the joint fit's, as a
+        # factor on the joint prediction there and the rest
+        y_t = (J @ c)[shear]
+        dy = J[np.ix_(shear, [0, 1])] @ (c_t[:2] - c[:2])
+        scale = float(dy @ y_t / (y_t @ y_t))
+        assert out["scale"] == pytest.approx(scale, rel=1e-6)
+        assert out["shape"] == pytest.approx(
+            np.linalg.norm(dy - scale * y_t) / np.linalg.norm(y_t), rel=1e-6)
 
 
 @pytest.mark.parametrize("seed", [9, 16])
