@@ -224,14 +224,15 @@ def split_test(obs: pd.DataFrame, z: np.ndarray, noise, jacobian: np.ndarray, na
 
 
 def split_words(split: dict) -> str:
-    """The split test of :func:`split_test` in words: 'to first order a response 12 %
-    softer and 3 % of it in shape; gain 57.1 on 4 columns, p = 4.3e-08'."""
+    """The split test of :func:`split_test` in words: 'to first order a response 0.31 %
+    softer and 1.2 % of it in shape; gain 57.1 on 4 columns, p = 4.3e-08'."""
     stats = f"gain {split['gain']:.1f} on {split['dof']} columns, p = {split['p_value']:.2g}"
     if "scale" not in split:
         return stats
     c = split["scale"]
-    return (f"to first order a response {100 * abs(c):.0f} % {'stiffer' if c >= 0 else 'softer'}"
-            f" and {100 * split['shape']:.0f} % of it in shape; {stats}")
+    return (f"to first order a response {100 * abs(c):.2g} % "
+            f"{'stiffer' if c >= 0 else 'softer'} and {100 * split['shape']:.2g} % of it in "
+            f"shape; {stats}")
 
 
 def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 1e-3,
