@@ -163,7 +163,7 @@ def _lrt(Bw: np.ndarray, z: np.ndarray, n: int, alpha: float, bic_margin: float,
 RIG_PARAMETERS = ("stretch_offset", "force_offset", "torque_offset")
 
 
-def test_groups(obs: pd.DataFrame) -> np.ndarray:
+def shear_rows(obs: pd.DataFrame) -> np.ndarray:
     """Per row, whether it belongs to a shear test (torsion, simple shear) rather than to
     compression/tension: the two kinds of test a consistent material must both explain."""
     return obs["curve"].astype(str).str.startswith(("torsion", "simple_shear")).to_numpy()
@@ -190,7 +190,7 @@ def split_test(obs: pd.DataFrame, z: np.ndarray, noise, jacobian: np.ndarray, na
     ask for a response 10 % stiffer than the fit of both gives them) and the RMS of the
     rest relative to the response's (``shape``)."""
     out = {"gain": 0.0, "dof": 0, "p_value": 1.0, "significant": False, "steps": {}}
-    shear = test_groups(obs)
+    shear = shear_rows(obs)
     if jacobian is None or not shear.any() or shear.all():
         return out
     J = np.asarray(jacobian, float)
