@@ -97,9 +97,8 @@ def threshold_doubt(status: str, rem: dict, alpha: float) -> str:
     each = {"cycles": "cycle", "branches": "branch"}.get(rem["reproducible"]["repeats"])
     tests = [("the misfit repeated at every " + each, rem["reproducible"])] if each else []
     tests.append(("a stiffness change with time", rem["trend"]))
-    if "split" in rem:  # engine open-world-22
-        tests.append(("shear tests that ask for other material parameters than "
-                      "compression/tension", rem["split"]))
+    tests.append(("shear tests that ask for other material parameters than "
+                  "compression/tension", rem["split"]))
     torn = [(what, t) for what, t in tests
             if t["dof"] and t["p_value"] < alpha and not t["significant"]]
     return "; ".join(f"what remains holds {what} by its likelihood-ratio test (p = "

@@ -151,12 +151,18 @@ def _lrt(Bw: np.ndarray, z: np.ndarray, n: int, alpha: float, bic_margin: float,
     """Gain of the columns ``Bw`` on the whitened residual ``z``: an F test with the
     noise's degrees of freedom ``nu_of(per-row gain)`` (:func:`diagnosis.noise.nu_gain`;
     a chi-square test where it is infinite, the noise known)."""
+    return _lrt_and_coef(Bw, z, n, alpha, bic_margin, nu_of)[0]
+
+
+def _lrt_and_coef(Bw: np.ndarray, z: np.ndarray, n: int, alpha: float, bic_margin: float,
+                  nu_of) -> tuple[dict, np.ndarray]:
+    """:func:`_lrt` and the columns' least-squares coefficients."""
     coef, _, rank, _ = np.linalg.lstsq(Bw, z, rcond=None)
     fitted = Bw @ coef
     gain = float(z @ z - np.sum((z - fitted) ** 2))
     p = lrt_p_value(gain, rank, nu_of(fitted**2)) if rank else 1.0
     return {"gain": gain, "dof": int(rank), "p_value": p, "significant": bool(
-        rank and p < alpha and gain > rank * math.log(n) + bic_margin)}
+        rank and p < alpha and gain > rank * math.log(n) + bic_margin)}, coef
 
 
 # Parameters that are the rig's, not the material's: one per channel already, never split
@@ -204,17 +210,13 @@ def split_test(obs: pd.DataFrame, z: np.ndarray, noise, jacobian: np.ndarray, na
     q, _ = np.linalg.qr(Jw)
     r = z - q @ (q.T @ z)
     S = Sw - q @ (q.T @ Sw)
-    coef, _, rank, _ = np.linalg.lstsq(S, r, rcond=None)
-    fitted = S @ coef
-    gain = float(r @ r - np.sum((r - fitted) ** 2))
-    p = lrt_p_value(gain, rank, nu_of(fitted**2)) if rank else 1.0
-    out.update(gain=gain, dof=int(rank), p_value=p, significant=bool(
-        rank and p < alpha and gain > rank * math.log(len(z)) + bic_margin),
-        steps={str(names[j]): -float(c) for j, c in zip(cols, coef, strict=True)})
-    if prediction is not None:  # the split model's Gauss-Newton step from the fit
-        both, *_ = np.linalg.lstsq(np.hstack([Jw, Sw]), z, rcond=None)
+    test, coef = _lrt_and_coef(S, r, len(z), alpha, bic_margin, nu_of)
+    out.update(test, steps={str(names[j]): -float(c) for j, c in zip(cols, coef, strict=True)})
+    if prediction is not None:  # the split model's Gauss-Newton step from the fit: its
+        # split coefficients are ``coef`` (Frisch-Waugh), the model's follow from them
+        base, *_ = np.linalg.lstsq(Jw, z - Sw @ coef, rcond=None)
         y = np.asarray(prediction, float)[shear]
-        dy = J[shear] @ (-both[:J.shape[1]]) + J[np.ix_(shear, cols)] @ (-both[J.shape[1]:])
+        dy = J[shear] @ (-base) + J[np.ix_(shear, cols)] @ (-coef)
         yy = float(y @ y)
         if yy > 0:
             scale = float(dy @ y) / yy
