@@ -9,7 +9,10 @@ stored verdicts: what a change of the engine does to the same recordings.
 taken.  The cases are handed out to whichever rank is free; each new result is written to
 ``--out`` as soon as it is done (a re-run skips the cases already there).  Rank 0 then
 scores the stored and the new results of the same cases (``diagnosis.open_benchmark``)
-and writes ``--out/compare.md`` with both summaries and one line per case.
+and writes ``--out/compare.md`` with both summaries and one line per case.  ``--stated-white``: each
+diagnosis is given the white noise SD per channel that its generator drew (``diagnose
+--noise``), as a lab would state its instrument's; the other kinds of rig noise are still
+estimated.
 """
 
 from __future__ import annotations
@@ -41,6 +44,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--benchmark", required=True, help="folder of an open-world benchmark")
     ap.add_argument("--out", required=True, help="folder of the new results")
+    ap.add_argument("--stated-white", action="store_true",
+                    help="give each diagnosis the white noise SD per channel its generator "
+                    "drew, as a lab that knows its instrument states it (--noise)")
     ap.add_argument("cases", nargs="*", help="case names (default: every stored result)")
     a = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -56,7 +62,9 @@ def main() -> None:
     for name in dynamic_items(pending, counter):
         lab, obs = _case(src, name)
         t0 = time.perf_counter()
-        res = _diagnose(obs, types.SimpleNamespace(**lab["specimen"]), 1, name)
+        stated = ({ch: float(n["white"]) for ch, n in lab["noise"].items()}
+                  if a.stated_white else None)
+        res = _diagnose(obs, types.SimpleNamespace(**lab["specimen"]), 1, name, stated)
         res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, lab["noise"],
                                                                lab.get("noise_rms"))
         write_json_atomic(out / f"{name}_result.json", res, indent=1, default=str)

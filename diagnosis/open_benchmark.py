@@ -85,11 +85,13 @@ def _case(i: int, seed: int, models: dict):
     return None
 
 
-def _diagnose(obs, spec, refinement, name) -> dict:
+def _diagnose(obs, spec, refinement, name, noise: dict | None = None) -> dict:
+    """The diagnosis of one case, blind; ``noise``: a stated white SD per channel (as a lab
+    that knows its instrument would give with ``--noise``), else estimated."""
     sim = FESimulator(obs, spec.radius_mm, spec.height_mm, refinement=refinement)
     fine = FESimulator(obs, spec.radius_mm, spec.height_mm, refinement=refinement + 1)
     try:
-        return diagnose(sim, obs, fine_sim=fine).to_json()
+        return diagnose(sim, obs, fine_sim=fine, noise=noise).to_json()
     except RuntimeError as exc:
         log.error("%s: diagnosis failed: %s", name, exc)
         return {"verdict": "error", "effects": [], "status": "error", "error": str(exc),
