@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from visible_beside import stored
 
 from brain_fe.io import write_json_atomic
 from diagnosis import noise as nz
@@ -40,8 +41,6 @@ from diagnosis.engine import diagnose
 from diagnosis.remaining import remaining, systematic_basis
 from recordings.observations import observations
 from simulators.fe import FESimulator
-
-HERE = Path(__file__).resolve().parent
 
 
 def per_channel(obs: pd.DataFrame, r: np.ndarray, B: np.ndarray,
@@ -60,7 +59,7 @@ def per_channel(obs: pd.DataFrame, r: np.ndarray, B: np.ndarray,
         rows = np.concatenate([s.rows for s in mine])
         shared, _ = nz._fit_channel(mine, r, float(np.median(sd0[rows])), None, dt, ramp,
                                     True, True)
-        n = int(sum(len(s.rows) - (0 if s.basis is None else s.basis.shape[1]) for s in mine))
+        n = int(sum(engine.dof[s.rows[0]] for s in mine))  # the same projection as the engine's
         k = 4  # white, correlated, its time, drift
         bic[ch] = {"shared": sum(s.nll(shared, r[s.rows]) for s in mine) + k * math.log(n),
                    "per_curve": sum(s.nll(engine.params[s.key], r[s.rows]) for s in mine)
@@ -89,8 +88,6 @@ def _rms_over(obs, resid, realised) -> dict:
 
 
 def study(src: Path, name: str) -> dict:
-    from visible_beside import stored  # benchmarks/: the stored case's truth
-
     lab, spec, truth, _ = stored(src, name)
     obs = observations(pd.read_csv(src / "cases" / f"{name}_recordings.csv"))
     obs = obs.reset_index(drop=True)
@@ -128,9 +125,6 @@ def main() -> None:
     ap.add_argument("cases", nargs="+")
     a = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    import sys
-
-    sys.path.insert(0, str(HERE))
     src = Path(a.benchmark)
     out = {name: study(src, name) for name in a.cases}
     write_json_atomic(Path(a.out), out, indent=1, default=str)
