@@ -126,6 +126,9 @@ def main() -> None:
     a = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     src = Path(a.benchmark)
+    missing = [n for n in a.cases if not (src / "cases" / f"{n}_recordings.csv").is_file()]
+    if missing:
+        ap.error(f"{src / 'cases'}: no case {', '.join(missing)}")
     out = {name: study(src, name) for name in a.cases}
     write_json_atomic(Path(a.out), out, indent=1, default=str)
 
