@@ -194,7 +194,8 @@ class PathSensitivities:
             rhs = m.newton.assemble_residual(with_bcs=False).copy()
             rhs.axpy(-1.0, r0)
             rhs.scale(-1.0 / eps)
-            perturb(p, 0.0, True)
+            # u is still the converged one; the constants and the state stay perturbed
+            # until the next perturbation or the restoration below sets them all
             _compat.set_bc(rhs, m.bcs, x, 0.0)
             z = self._z[p]
             m.newton.solve_tangent(rhs, z)

@@ -46,8 +46,8 @@ DIRECT_SOLVER = "mumps"
 SMALL_SOLVER, SMALL_ORDERING = "petsc", "nd"
 # Small systems are stored by 3 x 3 blocks (the displacement and twist of a node): an
 # element matrix goes in by blocks and the LU works on them; assembly, factorisation and
-# back-substitution of the glued Ogden Jacobian cost 0.32, 0.09 and 0.003 ms instead of
-# 0.44, 0.10 and 0.004 at 297 dofs, 2.8, 3.0 and 0.045 instead of 4.1, 4.5 and 0.064 at
+# back-substitution of the glued Ogden Jacobian cost 0.33, 0.095 and 0.003 ms instead of
+# 0.45, 0.097 and 0.004 at 297 dofs, 2.8, 3.1 and 0.045 instead of 4.0, 3.8 and 0.067 at
 # 2325 (``benchmarks/bench_lu.py``); MUMPS factorises such a matrix too.
 SMALL_MATRIX = "baij"
 SMALL_MAX_DOFS = 3000
@@ -232,12 +232,18 @@ class NewtonSolver:
             lifted = self._off_values(x)
             if lifted:
                 _compat.apply_lifting(self.b, self.a, lifted, x, -1.0)
-        self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        if self.comm.size > 1:  # nothing to exchange on one rank
+            self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         if with_bcs:
             if not lift:  # the residual itself: what a later :meth:`free_residual` returns
                 self.b.copy(self.b_free)
             _compat.set_bc(self.b, self.bcs, x, -1.0)
         return self.b
+
+    def _ghosts(self, x) -> None:
+        """The ghost values of x from their owners (nothing to exchange on one rank)."""
+        if self.comm.size > 1:
+            x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
 
     def _off_values(self, x) -> list:
         """The Dirichlet conditions whose values u does not meet: only these add to the
@@ -247,7 +253,13 @@ class NewtonSolver:
         mesh).  Under MPI every condition is lifted (see :meth:`solve`)."""
         if self.comm.size > 1 or self.lift_every_iteration:
             return self.bcs
-        off, r = [], self._check
+        r = self._check
+        with r.localForm() as rl:
+            rl.set(0.0)
+        _compat.set_bc(r, self.bcs, x, -1.0)
+        if r.norm(PETSc.NormType.INFINITY) == 0.0:  # u meets them all (most steps)
+            return []
+        off = []
         for bc in self.bcs:
             with r.localForm() as rl:
                 rl.set(0.0)
@@ -338,7 +350,7 @@ class NewtonSolver:
             redo = stale_step and not (rnorm < prev)  # also when rnorm is not finite
             if redo:  # undo the update, factorise at the iterate it was made from
                 x.axpy(1.0, self.du)
-                x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+                self._ghosts(x)
                 meets = before
                 b = self.assemble_residual(lift=not meets)
                 rnorm = b.norm()
@@ -366,7 +378,7 @@ class NewtonSolver:
                 return self._failed(rep)
             stale_step = self._factorised != (self._state, it)
             x.axpy(-1.0, self.du)
-            x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+            self._ghosts(x)
             before, meets = meets, serial
         rep.iterations = self.max_iterations
         rep.reason = f"no convergence in {self.max_iterations} iterations (|r| = {rnorm:.3e})"
