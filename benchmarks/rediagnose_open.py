@@ -54,9 +54,12 @@ def main() -> None:
     src, out = Path(a.benchmark), Path(a.out)
     names = a.cases or sorted(p.name.removesuffix("_result.json")
                               for p in (src / "cases").glob("*_result.json"))
-    missing = [n for n in names if not (src / "cases" / f"{n}_result.json").is_file()]
+    need = ("cases/{}_result.json", "cases/{}_specimens.csv", "cases/{}_recordings.csv",
+            "labels/{}.json")
+    missing = [n for n in names if not all((src / f.format(n)).is_file() for f in need)]
     if missing or not names:  # every rank finds the same, so every rank ends alike
-        ap.error(f"{src / 'cases'}: no stored result of {', '.join(missing) or 'any case'}")
+        ap.error(f"{src}: no stored result, recordings and label of "
+                 f"{', '.join(missing) or 'any case'}")
     if comm.rank == 0:
         out.mkdir(parents=True, exist_ok=True)
     comm.Barrier()

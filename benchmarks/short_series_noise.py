@@ -126,9 +126,12 @@ def main() -> None:
     a = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     src = Path(a.benchmark)
-    missing = [n for n in a.cases if not (src / "cases" / f"{n}_recordings.csv").is_file()]
+    if not (src / "config.json").is_file():
+        ap.error(f"{src}: not an open-world benchmark (no config.json)")
+    missing = [n for n in a.cases if not ((src / "cases" / f"{n}_recordings.csv").is_file()
+                                          and (src / "labels" / f"{n}.json").is_file())]
     if missing:
-        ap.error(f"{src / 'cases'}: no case {', '.join(missing)}")
+        ap.error(f"{src}: no recordings and label of {', '.join(missing)}")
     out = {name: study(src, name) for name in a.cases}
     write_json_atomic(Path(a.out), out, indent=1, default=str)
 

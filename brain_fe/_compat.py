@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import inspect
 import itertools
+import os
 import platform
 from typing import Any
 
@@ -137,8 +138,11 @@ def _cpu_flags() -> set[str]:
 # numbers move at the rounding (vectorised sums). The flag is part of FFCx's module name,
 # so a machine without AVX2 never loads such a kernel from a shared cache. Not -mfma or
 # -march=x86-64-v3: 0.51 and 0.47 ms here.
-ARCH_FLAGS = ["-mavx2"] if platform.machine() in ("x86_64", "AMD64") \
-    and "avx2" in _cpu_flags() else []
+# BRAINMECH_JIT_ARCH replaces them (its words as flags; empty: none), e.g. for a cluster
+# whose nodes share one cache and should share its kernels too.
+ARCH_FLAGS = (os.environ["BRAINMECH_JIT_ARCH"].split() if "BRAINMECH_JIT_ARCH" in os.environ
+              else ["-mavx2"] if platform.machine() in ("x86_64", "AMD64")
+              and "avx2" in _cpu_flags() else [])
 
 
 def _jit(fast_math: bool = True) -> dict:

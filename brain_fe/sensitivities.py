@@ -194,8 +194,8 @@ class PathSensitivities:
             rhs = m.newton.assemble_residual(with_bcs=False).copy()
             rhs.axpy(-1.0, r0)
             rhs.scale(-1.0 / eps)
-            # u is still the converged one; the constants and the state stay perturbed
-            # until the next perturbation or the restoration below sets them all
+            perturb(p, 0.0, False)  # u is still the converged one (a failed tangent solve
+            # factorises again, at the converged constants and state)
             _compat.set_bc(rhs, m.bcs, x, 0.0)
             z = self._z[p]
             m.newton.solve_tangent(rhs, z)

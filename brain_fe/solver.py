@@ -32,7 +32,8 @@ class NewtonReport:
 # LU in a nested-dissection ordering (:data:`SMALL_SOLVER`, :data:`SMALL_ORDERING`):
 # MUMPS's fixed cost per call dominates there (measured at 297 dofs: factorisation 0.81
 # against 0.24 ms, back-substitution 0.143 against 0.012 ms; at 2325 dofs 10.9 against
-# 9.3 and 0.88 against 0.44 ms; BENCHMARKS.md).  That LU does not pivot: a factorisation
+# 9.3 and 0.88 against 0.44 ms; BENCHMARKS.md).  That LU does not pivot (but inside the
+# 3 x 3 blocks of :data:`SMALL_MATRIX`): a factorisation
 # that meets a zero pivot (KSP reason -11; a viscoelastic run with holds did) is made
 # again by MUMPS, for that matrix only; so is one whose solution is not a solution to
 # the rounding of a stable LU (normwise backward error above :data:`SMALL_BACKWARD_ERROR`,
@@ -103,6 +104,11 @@ class NewtonSolver:
         self._pivoting = None  # the MUMPS solver of a small system's zero pivots (made once)
         self._a_norm = np.inf  # infinity norm of the factorised Jacobian
         self._check = self.b.duplicate()
+        # the conditions that share a dof with each other: DOLFINx gives a shared dof the
+        # value of the last of them, so they are lifted together (see :meth:`_off_values`)
+        dofs = [np.asarray(bc.dof_indices()[0]) for bc in bcs]
+        self._linked = [{i} | {j for j, d in enumerate(dofs) if np.intersect1d(d, di).size}
+                        for i, di in enumerate(dofs)]
         self._factorised = (-1, 0)  # (solve, iteration) the factorisation was made at
         self._state = self._iteration = 0
         self.factorisations = 0
@@ -246,11 +252,12 @@ class NewtonSolver:
             x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
 
     def _off_values(self, x) -> list:
-        """The Dirichlet conditions whose values u does not meet: only these add to the
-        lifting on one rank, where each condition that u meets exactly would add
-        A_e (g - u) = 0 on every cell it touches (the same bits without those cells: in
-        a load step only the plate's conditions move, 4 of the 11 cells of the working
-        mesh).  Under MPI every condition is lifted (see :meth:`solve`)."""
+        """The Dirichlet conditions whose values u does not meet, with every condition
+        that shares a dof with one of them (in their order): only these add to the lifting
+        on one rank, where each condition that u meets exactly would add A_e (g - u) = 0
+        on every cell it touches (the same bits without those cells: in a load step only
+        the plate's conditions move, 4 of the 11 cells of the working mesh).  Under MPI
+        every condition is lifted (see :meth:`solve`)."""
         if self.comm.size > 1 or self.lift_every_iteration:
             return self.bcs
         r = self._check
@@ -259,14 +266,14 @@ class NewtonSolver:
         _compat.set_bc(r, self.bcs, x, -1.0)
         if r.norm(PETSc.NormType.INFINITY) == 0.0:  # u meets them all (most steps)
             return []
-        off = []
-        for bc in self.bcs:
+        off = set()
+        for i, bc in enumerate(self.bcs):
             with r.localForm() as rl:
                 rl.set(0.0)
             _compat.set_bc(r, [bc], x, -1.0)  # -(g - u) on this condition's rows only
             if not r.norm(PETSc.NormType.INFINITY) == 0.0:  # also when not finite
-                off.append(bc)
-        return off
+                off |= self._linked[i]  # with those sharing its dofs: the same values
+        return [bc for i, bc in enumerate(self.bcs) if i in off]
 
     def free_residual(self):
         """The residual at the current u without the Dirichlet rows set (the rows of the

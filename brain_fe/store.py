@@ -68,6 +68,9 @@ def software_versions() -> dict[str, str]:
             out[key] = version(dist)
         except PackageNotFoundError:
             out[key] = "unknown"
+    from ._compat import ARCH_FLAGS  # the kernels' instruction set: the last digits
+
+    out["jit_arch_flags"] = " ".join(ARCH_FLAGS)
     return out
 
 

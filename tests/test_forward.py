@@ -403,11 +403,12 @@ def test_only_the_moving_conditions_are_lifted(axi_glued, monkeypatch):
     for col in new.select_dtypes("number"):
         assert np.array_equal(new[col].to_numpy(), old[col].to_numpy()), col
     # at the last converged state, the plate moved on: only its two conditions are off
+    # (they share no dof with another; u_r = 0 on the axis, bottom and top do)
     x = _compat_vec(axi_glued)
     axi_glued.ends.set_top(0.05, 0.2)
     moving = n._off_values(x)
-    assert 0 < len(moving) < len(n.bcs)
-    assert all(bc in (n.bcs[-2], n.bcs[-1]) for bc in moving)  # u_z and twist on top
+    assert moving == n.bcs[-2:]  # u_z and twist on top
+    assert n._linked[0] == {0, 3, 4}  # the axis's u_r, with the bottom's and the top's
     lifted = n.assemble_residual().copy()
     monkeypatch.setattr(NewtonSolver, "_off_values", lambda self, x: self.bcs)
     every = n.assemble_residual().copy()
@@ -442,9 +443,14 @@ def test_small_systems_are_stored_by_blocks(axi_glued):
     b.setArray(np.cos(np.arange(b.getSize())))
     x, y = b.duplicate(), b.duplicate()
     ksp.solve(b, x)
-    n.linear_solve(b, y)
+    pivoted = n.pivoted
+    assert n.linear_solve(b, y) > 0
+    assert n.pivoted == pivoted and n.ksp is n._primary  # solved by PETSc's block LU
+    assert n.ksp.getPC().getFactorSolverType() == "petsc"
     y.axpy(-1.0, x)
     assert y.norm() <= 1e-12 * x.norm()
+    for obj in (ksp, A, b, x, y):
+        obj.destroy()
     axi_glued.u.x.array[:] = 0.0
     n.forget()
 

@@ -248,3 +248,28 @@ def test_a_history_update_has_the_same_key_whatever_was_built_before(monkeypatch
     first = key()
     ForwardModel(geometry.axisymmetric(refinement=1, comm=MPI.COMM_SELF), n_terms=2)
     assert key() == first
+
+
+def test_the_kernels_instruction_set_follows_the_cpu_unless_stated():
+    """-mavx2 joins the JIT flags (and with them FFCx's module name) where /proc/cpuinfo
+    lists AVX2 on x86-64; BRAINMECH_JIT_ARCH replaces the choice (empty: no flag)."""
+    import os
+    import platform
+    import subprocess
+    import sys
+
+    from brain_fe import _compat
+
+    code = ("from brain_fe import _compat; "
+            "print(' '.join(_compat._jit()['cffi_extra_compile_args']))")
+    env = {k: v for k, v in os.environ.items() if k != "BRAINMECH_JIT_ARCH"}
+    flags = {}
+    for stated in (None, "", "-march=x86-64-v3 -mtune=native"):
+        e = env if stated is None else dict(env, BRAINMECH_JIT_ARCH=stated)
+        flags[stated] = subprocess.run([sys.executable, "-c", code], env=e, check=True,
+                                       capture_output=True, text=True).stdout.split()
+    avx2 = platform.machine() == "x86_64" and "avx2" in _compat._cpu_flags()
+    assert flags[None] == ["-O3", "-g0", "-ffast-math"] + (["-mavx2"] if avx2 else [])
+    assert flags[""] == ["-O3", "-g0", "-ffast-math"]
+    assert flags["-march=x86-64-v3 -mtune=native"][-2:] == ["-march=x86-64-v3",
+                                                            "-mtune=native"]
