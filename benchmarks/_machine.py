@@ -6,6 +6,8 @@ import argparse
 import json
 import os
 import platform
+import statistics
+import time
 
 
 def cpu_model() -> str:
@@ -39,3 +41,15 @@ def write_result(out_dir: str, name: str, fields: dict) -> str:
                    **fields}, fh, indent=1)
     print("wrote", path)
     return path
+
+
+def median_per_call(call, n: int, repeats: int) -> float:
+    """Median over ``repeats`` blocks of the time of one ``call()`` [s], each block
+    ``n`` calls in a row."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(n):
+            call()
+        times.append((time.perf_counter() - t0) / n)
+    return statistics.median(times)

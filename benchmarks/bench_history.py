@@ -16,11 +16,8 @@ largest value.
 
 from __future__ import annotations
 
-import statistics
-import time
-
 import numpy as np
-from _machine import micro_arguments, write_result
+from _machine import median_per_call, micro_arguments, write_result
 
 DEFAULT_FLAGS = ["-O2", "-g0"]  # DOLFINx's default cffi_extra_compile_args
 MATERIALS = {"maxwell": {"maxwell": 1}, "mullins": {"mullins": True},
@@ -58,13 +55,7 @@ def _model(refinement: int, kw: dict):
 
 def _per_call(evaluate, n: int, repeats: int) -> tuple[float, np.ndarray]:
     vals = np.asarray(evaluate()).copy()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(n):
-            evaluate()
-        times.append((time.perf_counter() - t0) / n)
-    return statistics.median(times), vals
+    return median_per_call(evaluate, n, repeats), vals
 
 
 def main():

@@ -22,7 +22,7 @@ import statistics
 import time
 
 import numpy as np
-from _machine import micro_arguments, write_result
+from _machine import median_per_call, micro_arguments, write_result
 
 SOLVERS = [("mumps", None), ("petsc", "nd"), ("petsc", "rcm"), ("petsc", "qmd"),
            ("umfpack", None)]
@@ -50,13 +50,7 @@ def _jacobian(kind: str, refinement: int, storage: str, n_assemble: int, repeats
         A.assemble()
 
     assemble()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(n_assemble):
-            assemble()
-        times.append((time.perf_counter() - t0) / n_assemble)
-    return A, statistics.median(times)
+    return A, median_per_call(assemble, n_assemble, repeats)
 
 
 def _time(A, solver, ordering, n_factor, n_solve, repeats):

@@ -27,17 +27,13 @@ from dolfinx import fem
 from petsc4py import PETSc
 
 from . import _compat
+from .solver import ghost_forward
 
 log = logging.getLogger(__name__)
 
 # Floor of the central-difference step per parameter family (relative step 1e-6)
 FD_FLOOR = {"mu": 1e-2, "alpha": 1.0, "kappa": 1.0, "beta": 0.1, "tau": 1.0,
             "softening": 0.1, "softening_m": 1e-2, "k_r": 0.1, "k_theta": 0.1}
-
-
-def _ghost_forward(x) -> None:
-    if x.comm.size > 1:  # nothing to exchange on one rank
-        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
 
 
 def _ghost_reverse(x) -> None:
@@ -118,7 +114,7 @@ class DirectSensitivities:
             self._rhs.scale(-1.0)
             _compat.set_bc(self._rhs, m.bcs, x, 0.0)
             m.newton.solve_tangent(self._rhs, zvec)
-            _ghost_forward(zvec)
+            ghost_forward(zvec)
             a = self._action
             with a.localForm() as al:
                 al.set(0.0)
@@ -175,7 +171,7 @@ class PathSensitivities:
             if with_u:
                 u0.copy(x)
                 x.axpy(h, self._z[key])
-                _ghost_forward(x)
+                ghost_forward(x)
 
         # one-sided differences from the converged state (its residual, reactions and
         # state update are shared by every direction): 2 assemblies and 1 state update per
@@ -199,12 +195,12 @@ class PathSensitivities:
             _compat.set_bc(rhs, m.bcs, x, 0.0)
             z = self._z[p]
             m.newton.solve_tangent(rhs, z)
-            _ghost_forward(z)
+            ghost_forward(z)
             if off:  # add the shift of the top face that keeps the axial force zero
                 perturb(p, eps, True)
                 dfz = (m.reactions()[0] - f0[0]) / eps
                 z.axpy(-dfz / dfz_dw, zw)
-                _ghost_forward(z)
+                ghost_forward(z)
             if record or state is not None:
                 perturb(p, eps, True)
                 if record:
@@ -225,20 +221,20 @@ class PathSensitivities:
         e = m.ends.w_axial  # 1 on the top face's axial dofs
         h = 1e-7 * m.geometry.height_mm
         x.axpy(h, e)
-        _ghost_forward(x)
+        ghost_forward(x)
         rhs = m.newton.assemble_residual(with_bcs=False).copy()
         u0.copy(x)
-        _ghost_forward(x)
+        ghost_forward(x)
         rhs.axpy(-1.0, r0)
         rhs.scale(-1.0 / h)
         _compat.set_bc(rhs, m.bcs, x, 0.0)
         rhs.axpy(1.0, e)
         zw = x.duplicate()
         m.newton.solve_tangent(rhs, zw)
-        _ghost_forward(zw)
+        ghost_forward(zw)
         x.axpy(h, zw)
-        _ghost_forward(x)
+        ghost_forward(x)
         dfz_dw = (m.reactions()[0] - f0[0]) / h
         u0.copy(x)
-        _ghost_forward(x)
+        ghost_forward(x)
         return zw, dfz_dw

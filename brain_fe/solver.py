@@ -67,6 +67,12 @@ SERIAL_PREFIX = "brainmech_newton_serial_"  # PETSc options of the one-rank solv
 MUMPS_WORKSPACE_ERRORS = frozenset({-8, -9, -11, -12, -14, -15, -17, -19, -20})
 
 
+def ghost_forward(x) -> None:
+    """The ghost values of x from their owners (nothing to exchange on one rank)."""
+    if x.comm.size > 1:
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+
+
 class NewtonSolver:
     """Newton for F(u; v) = 0 with Dirichlet conditions ``bcs`` applied by lifting, reusing
     a factorisation while it contracts (``reuse``; see :meth:`solve`).
@@ -246,11 +252,6 @@ class NewtonSolver:
             _compat.set_bc(self.b, self.bcs, x, -1.0)
         return self.b
 
-    def _ghosts(self, x) -> None:
-        """The ghost values of x from their owners (nothing to exchange on one rank)."""
-        if self.comm.size > 1:
-            x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-
     def _off_values(self, x) -> list:
         """The Dirichlet conditions whose values u does not meet, with every condition
         that shares a dof with one of them (in their order): only these add to the lifting
@@ -260,18 +261,18 @@ class NewtonSolver:
         every condition is lifted (see :meth:`solve`)."""
         if self.comm.size > 1 or self.lift_every_iteration:
             return self.bcs
-        r = self._check
-        with r.localForm() as rl:
-            rl.set(0.0)
-        _compat.set_bc(r, self.bcs, x, -1.0)
-        if r.norm(PETSc.NormType.INFINITY) == 0.0:  # u meets them all (most steps)
+        def met(bcs) -> bool:  # u meets every value of bcs (False when not finite)
+            r = self._check
+            with r.localForm() as rl:
+                rl.set(0.0)
+            _compat.set_bc(r, bcs, x, -1.0)  # -(g - u) on these conditions' rows only
+            return r.norm(PETSc.NormType.INFINITY) == 0.0
+
+        if met(self.bcs):  # most steps
             return []
         off = set()
         for i, bc in enumerate(self.bcs):
-            with r.localForm() as rl:
-                rl.set(0.0)
-            _compat.set_bc(r, [bc], x, -1.0)  # -(g - u) on this condition's rows only
-            if not r.norm(PETSc.NormType.INFINITY) == 0.0:  # also when not finite
+            if not met([bc]):
                 off |= self._linked[i]  # with those sharing its dofs: the same values
         return [bc for i, bc in enumerate(self.bcs) if i in off]
 
@@ -357,7 +358,7 @@ class NewtonSolver:
             redo = stale_step and not (rnorm < prev)  # also when rnorm is not finite
             if redo:  # undo the update, factorise at the iterate it was made from
                 x.axpy(1.0, self.du)
-                self._ghosts(x)
+                ghost_forward(x)
                 meets = before
                 b = self.assemble_residual(lift=not meets)
                 rnorm = b.norm()
@@ -385,7 +386,7 @@ class NewtonSolver:
                 return self._failed(rep)
             stale_step = self._factorised != (self._state, it)
             x.axpy(-1.0, self.du)
-            self._ghosts(x)
+            ghost_forward(x)
             before, meets = meets, serial
         rep.iterations = self.max_iterations
         rep.reason = f"no convergence in {self.max_iterations} iterations (|r| = {rnorm:.3e})"
