@@ -108,6 +108,14 @@ class EndConditions:
             k_t * Rr**2 * (self.c_twist - phi) * w * ds(top))
         return e_top * w * ds(top) + e_bot * w * ds(bottom)
 
+    def top_cells(self) -> np.ndarray:
+        """The owned cells with a degree of freedom on the top face: the only cells that
+        add to the reactions (the rows of the top plate's dofs)."""
+        top = self._dofs(None, "top")  # block indices, owned and ghost
+        owned = self.geometry.mesh.topology.index_map(self.geometry.mesh.topology.dim)
+        cells = _compat.dofmap_array(self.V)[:owned.size_local]
+        return np.flatnonzero(np.isin(cells, top).any(axis=1)).astype(np.int32)
+
     # ------------------------------------------------------------------ conditions
     def _dofs(self, sub: int | None, facet_name: str) -> np.ndarray:
         return _compat.locate_dofs(self.V, sub, self.geometry.fdim,

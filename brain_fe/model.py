@@ -24,6 +24,8 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 
 import dolfinx.fem as fem
+import dolfinx.fem.petsc as fem_petsc
+import dolfinx.mesh as dmesh
 import numpy as np
 import pandas as pd
 import ufl
@@ -46,6 +48,14 @@ from .stepper import follow
 from .vocabulary import TIME, channel_values
 
 log = logging.getLogger(__name__)
+
+
+def on_cells(form: ufl.Form, msh, cells: np.ndarray) -> ufl.Form:
+    """``form`` with its cell integrals restricted to ``cells`` (owned cells of the mesh
+    ``msh``, sorted); facet integrals are kept whole."""
+    tags = dmesh.meshtags(msh, msh.topology.dim, cells, np.ones(len(cells), dtype=np.int32))
+    return ufl.Form([i.reconstruct(subdomain_id=1, subdomain_data=tags)
+                     if i.integral_type() == "cell" else i for i in form.integrals()])
 
 
 class ForwardModel:
@@ -89,6 +99,9 @@ class ForwardModel:
         self.residual_form = _compat.form(self.residual_ufl)
         self.jacobian_form = _compat.form(ufl.derivative(self.residual_ufl, self.u,
                                                          ufl.TrialFunction(self.V)))
+        self._top_cells = self.ends.top_cells()
+        self.reaction_form = self.at_top(self.residual_ufl)
+        self._reaction_b = fem_petsc.create_vector(self.reaction_form)
         self.compile_time_s = time.perf_counter() - t0
         log.debug("compiled %s forms in %.1f s", geometry.kind, self.compile_time_s)
         self.newton = NewtonSolver(self.comm, self.residual_form, self.jacobian_form, self.u,
@@ -103,6 +116,13 @@ class ForwardModel:
                       else DirectSensitivities)(self)
         self.iterations = self.cutbacks = 0
         self.newton_log: list[tuple[float, list[float]]] = []
+
+    def at_top(self, form: ufl.Form):
+        """``form`` (a residual-like vector form) compiled on the cells with a dof on the
+        top face alone, for its rows of the top plate (the reactions): a quarter to a fifth
+        of the cost of the whole form on the working mesh, and the same bits in those rows
+        (each sums the same cells' contributions in the same order)."""
+        return _compat.form(on_cells(form, self.geometry.mesh, self._top_cells))
 
     def _residual(self, p):
         """The weak form: energy (elastic) or stress (history) part plus the glue layer."""
@@ -157,7 +177,13 @@ class ForwardModel:
     # ------------------------------------------------------------------ outputs
     def reactions(self) -> tuple[float, float]:
         """(axial force [mN], torque [mN mm]) on the top plate at the current state."""
-        return self.ends.reactions(self.newton.assemble_residual(with_bcs=False), self.comm)
+        b = self._reaction_b
+        with b.localForm() as bl:
+            bl.set(0.0)
+        fem_petsc.assemble_vector(b, self.reaction_form)
+        if self.comm.size > 1:
+            b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        return self.ends.reactions(b, self.comm)
 
     def _at_converged(self, record: bool, path: bool) -> Converged:
         """The converged state's residual (where the reactions or path sensitivities need

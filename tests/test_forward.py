@@ -417,6 +417,32 @@ def test_only_the_moving_conditions_are_lifted(axi_glued, monkeypatch):
     axi_glued.ends.set_top(0.0, 0.0)
 
 
+def test_reactions_come_from_the_cells_at_the_top():
+    """The reactions are the residual's rows of the top plate, so only the cells with a
+    dof on the top face are assembled for them (4 of the 20 cells of the working mesh):
+    a viscoelastic run with its path sensitivities (which take the reactions at every
+    perturbed state) equals bit for bit the run that assembles the whole residual."""
+    from brain_fe import geometry
+    from brain_fe.model import ForwardModel
+    from brain_fe.protocols import torsion
+
+    m = ForwardModel(geometry.axisymmetric(refinement=1, comm=MPI.COMM_SELF), maxwell=1)
+    assert len(m.ends.top_cells()) == 4
+    p = _params(nu0=0.49, kappa=None, beta=(0.3,), tau_s=(5.0,))
+    prot = torsion(0.30)
+    new = m.run(prot, p, sensitivities=["mu_0", "beta_0", "tau_0"])
+
+    def whole(self):
+        return self.ends.reactions(self.newton.assemble_residual(with_bcs=False), self.comm)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ForwardModel, "reactions", whole)
+        old = m.run(prot, p, sensitivities=["mu_0", "beta_0", "tau_0"])
+    assert len(new.columns) > 8
+    for col in new.select_dtypes("number"):
+        assert np.array_equal(new[col].to_numpy(), old[col].to_numpy()), col
+
+
 def test_small_systems_are_stored_by_blocks(axi_glued):
     """A small system's Jacobian is a block matrix (3 x 3: a node's displacement and
     twist): the same entries as the point-wise matrix DOLFINx makes by default, and its
@@ -533,6 +559,11 @@ def test_axisymmetric_matches_3d_in_torsion():
     r3, ra = m3.run(prot, p).iloc[-1], ma.run(prot, p).iloc[-1]
     assert ra.torque_mNmm == pytest.approx(r3.torque_mNmm, rel=1e-2)
     assert ra.axial_force_mN == pytest.approx(r3.axial_force_mN, rel=1e-2)
+    # the reactions of the cells at the top face alone are those of the whole residual
+    # (under MPI too: the cells of each rank, summed into the owners' rows)
+    for m in (m3, ma):
+        full = m.ends.reactions(m.newton.assemble_residual(with_bcs=False), m.comm)
+        assert m.reactions() == full and abs(full[1]) > 0.1
 
 
 @pytest.mark.slow
