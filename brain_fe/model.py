@@ -52,7 +52,11 @@ log = logging.getLogger(__name__)
 
 def on_cells(form: ufl.Form, msh, cells: np.ndarray) -> ufl.Form:
     """``form`` with its cell integrals restricted to ``cells`` (owned cells of the mesh
-    ``msh``, sorted); facet integrals are kept whole."""
+    ``msh``, sorted); facet integrals are kept whole.  Its cell integrals must cover the
+    whole mesh (restricting ``dx(k)`` of several regions would merge them)."""
+    if any(i.integral_type() == "cell" and i.subdomain_id() != "everywhere"
+           for i in form.integrals()):
+        raise ValueError("on_cells: the form already has cell integrals over subdomains")
     tags = dmesh.meshtags(msh, msh.topology.dim, cells, np.ones(len(cells), dtype=np.int32))
     return ufl.Form([i.reconstruct(subdomain_id=1, subdomain_data=tags)
                      if i.integral_type() == "cell" else i for i in form.integrals()])

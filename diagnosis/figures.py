@@ -73,7 +73,12 @@ def mismatch_map(obs: pd.DataFrame, residual, sigma, table: pd.DataFrame, path) 
     ncols = min(3, n_panels)
     nrows = math.ceil(n_panels / ncols)
     fig, axes = plt.subplots(nrows, ncols, squeeze=False, figsize=(4.6 * ncols, 3.4 * nrows))
-    _margins(fig, left=0.85, right=0.4, top=0.4, bottom=0.85, wgap=1.0, hgap=0.95)
+    # the heat map's row labels (curve over channel, 6 pt) need their width left of it,
+    # whichever column it lands in: ~0.055 in per character and the ticks
+    label_in = 0.055 * max(len(w) for cv, ch in pairs for w in (cv, ch)) + 0.2 \
+        if pairs else 0.0
+    _margins(fig, left=max(0.85, label_in + 0.05), right=0.4, top=0.4, bottom=0.85,
+             wgap=max(1.0, label_in + 0.15), hgap=0.95)
     flat = list(axes.ravel())
     for ax, (cv, ch) in zip(flat, pairs, strict=False):
         m_cc = (curve == cv) & (channel == ch) & np.isfinite(z) & np.isfinite(control)
@@ -177,7 +182,7 @@ def before_after_png(d) -> bytes:
         ax.set_xlabel("stretch" if "compression" in curve or "tension" in curve
                       else "amount of shear")
     axes[0][0].legend(fontsize=7)
-    _margins(fig, left=0.45, right=0.15, top=0.5, bottom=0.5, wgap=0.55, hgap=0.0)
+    _margins(fig, left=0.7, right=0.15, top=0.5, bottom=0.5, wgap=0.7, hgap=0.0)  # "-1500"
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)

@@ -441,6 +441,14 @@ def test_reactions_come_from_the_cells_at_the_top():
     assert len(new.columns) > 8
     for col in new.select_dtypes("number"):
         assert np.array_equal(new[col].to_numpy(), old[col].to_numpy()), col
+    # a form whose cells are already split into regions is refused, not merged
+    import ufl
+
+    from brain_fe.model import on_cells
+    dx1 = ufl.Measure("dx", domain=m.geometry.mesh, subdomain_id=1)
+    with pytest.raises(ValueError, match="subdomains"):
+        on_cells(ufl.inner(m.u, ufl.TestFunction(m.V)) * dx1, m.geometry.mesh,
+                 m.ends.top_cells())
 
 
 def test_small_systems_are_stored_by_blocks(axi_glued):
