@@ -29,7 +29,6 @@ import dolfinx.mesh as dmesh
 import numpy as np
 import pandas as pd
 import ufl
-from petsc4py import PETSc
 
 from . import _compat
 from . import artefacts as _art
@@ -43,7 +42,7 @@ from .parameters import K_R, K_THETA, Direction, Param, Parameters
 from .protocols import Protocol, Step, plate_position
 from .response import Response
 from .sensitivities import Converged, DirectSensitivities, PathSensitivities
-from .solver import NewtonSolver
+from .solver import NewtonSolver, ghost_forward, ghost_reverse
 from .stepper import follow
 from .vocabulary import TIME, channel_values
 
@@ -185,8 +184,7 @@ class ForwardModel:
         with b.localForm() as bl:
             bl.set(0.0)
         fem_petsc.assemble_vector(b, self.reaction_form)
-        if self.comm.size > 1:
-            b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        ghost_reverse(b)
         return self.ends.reactions(b, self.comm)
 
     def _at_converged(self, record: bool, path: bool) -> Converged:
@@ -293,7 +291,7 @@ class ForwardModel:
         self.set_parameters(values)
         x = _compat.petsc_vec(self.u)
         x.set(0.0)
-        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        ghost_forward(x)
         if self.state is not None:
             self.state.reset()
         if self.lift_off is not None:

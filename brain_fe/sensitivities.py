@@ -24,20 +24,15 @@ import dolfinx.fem.petsc as fem_petsc
 import numpy as np
 import ufl
 from dolfinx import fem
-from petsc4py import PETSc
 
 from . import _compat
-from .solver import ghost_forward
+from .solver import ghost_forward, ghost_reverse
 
 log = logging.getLogger(__name__)
 
 # Floor of the central-difference step per parameter family (relative step 1e-6)
 FD_FLOOR = {"mu": 1e-2, "alpha": 1.0, "kappa": 1.0, "beta": 0.1, "tau": 1.0,
             "softening": 0.1, "softening_m": 1e-2, "k_r": 0.1, "k_theta": 0.1}
-
-
-def _ghost_reverse(x) -> None:
-    x.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
 
 
 @dataclass
@@ -103,7 +98,7 @@ class DirectSensitivities:
                     with v.localForm() as vl:
                         vl.set(0.0)
                     fem_petsc.assemble_vector(v, self._forms[p])
-                    _ghost_reverse(v)
+                    ghost_reverse(v)
                     assembled[p] = v
         out = {}
         for key, d in self.requests:
@@ -120,7 +115,7 @@ class DirectSensitivities:
             with a.localForm() as al:
                 al.set(0.0)
             fem_petsc.assemble_vector(a, self._action_form)
-            _ghost_reverse(a)
+            ghost_reverse(a)
             a.axpy(1.0, r)
             out[key] = m.ends.directional(a)
         return out

@@ -73,6 +73,13 @@ def ghost_forward(x) -> None:
         x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
 
 
+def ghost_reverse(x) -> None:
+    """What an assembly put into x's ghost entries, added to their owners (nothing to
+    exchange on one rank)."""
+    if x.comm.size > 1:
+        x.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+
+
 class NewtonSolver:
     """Newton for F(u; v) = 0 with Dirichlet conditions ``bcs`` applied by lifting, reusing
     a factorisation while it contracts (``reuse``; see :meth:`solve`).
@@ -244,8 +251,7 @@ class NewtonSolver:
             lifted = self._off_values(x)
             if lifted:
                 _compat.apply_lifting(self.b, self.a, lifted, x, -1.0)
-        if self.comm.size > 1:  # nothing to exchange on one rank
-            self.b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        ghost_reverse(self.b)
         if with_bcs:
             if not lift:  # the residual itself: what a later :meth:`free_residual` returns
                 self.b.copy(self.b_free)

@@ -15,16 +15,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from petsc4py import PETSc
 
-from .solver import ConvergenceError
+from .solver import ConvergenceError, ghost_forward
 
 log = logging.getLogger(__name__)
-
-
-def _ghost_update(x) -> None:
-    if x.comm.size > 1:  # nothing to exchange on one rank
-        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
 
 
 @dataclass
@@ -83,7 +77,7 @@ def follow(protocol, steps, *, x, newton, set_control: Callable, set_dt: Callabl
                 if dq and q_cur != q_prev:  # linear extrapolation along the path
                     x.axpy(dq / (q_cur - q_prev), saved)
                     x.axpy(-dq / (q_cur - q_prev), prev)
-                    _ghost_update(x)
+                    ghost_forward(x)
                 set_dt(max(t_new - t_cur, 1e-12))
                 set_control(q_new, p_new)
                 rep = newton.solve()
@@ -94,7 +88,7 @@ def follow(protocol, steps, *, x, newton, set_control: Callable, set_dt: Callabl
                 log.info("Newton failed at %s = %.5g (%s); cutting the step back",
                          protocol.control, q_new, rep.reason)
                 saved.copy(x)
-                _ghost_update(x)
+                ghost_forward(x)
                 frac /= 2
                 rec.cutbacks += 1
             else:
