@@ -39,5 +39,14 @@ fi
 # The project's bytecode, as a wheel's install would write it (an editable install does not):
 # where PYTHONDONTWRITEBYTECODE is set, every command would otherwise compile its ~80 modules
 # afresh (0.08 s of each start); a stale file is recompiled in memory, never used.
-.venv/bin/python -m compileall -q -j 0 brain_fe surrogate recordings simulators identification \
-  analysis diagnosis brainmech >/dev/null
+# The packages are read from pyproject.toml, so that a new one needs adding there alone.
+.venv/bin/python - <<'PY'
+import compileall
+import tomllib
+
+with open("pyproject.toml", "rb") as f:
+    packages = tomllib.load(f)["tool"]["setuptools"]["packages"]
+ok = [compileall.compile_dir(top, quiet=2, workers=0)
+      for top in sorted({p.split(".")[0] for p in packages})]
+raise SystemExit(0 if all(ok) else 1)
+PY
