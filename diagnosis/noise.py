@@ -362,18 +362,21 @@ class _Series:
 
     basis: np.ndarray | None = None  # orthonormal columns projected out (REML), if any
 
-    def restrict(self, B: np.ndarray) -> None:
-        """Project the columns of ``B`` (rows of the whole table) out of this series'
-        likelihood: an orthonormal basis of their span on this series' rows.  Skipped when
-        they would leave fewer than ``MIN_REML_DOF`` degrees of freedom."""
-        Bs = B[self.rows]
-        Bs = Bs[:, np.abs(Bs).max(axis=0) > 0] if Bs.size else Bs
-        if not Bs.shape[1]:
-            return
-        u, sv, _ = np.linalg.svd(Bs, full_matrices=False)
-        q = u[:, sv > 1e-10 * sv[0]]
-        if len(self.rows) - q.shape[1] >= MIN_REML_DOF:
-            self.basis = q
+    def restrict(self, bases: list[np.ndarray]) -> None:
+        """Project columns out of this series' likelihood: an orthonormal basis of their
+        span on this series' rows, of the first of ``bases`` (column sets over the rows of
+        the whole table, the fullest first) that leaves at least ``MIN_REML_DOF`` degrees
+        of freedom; none when no set does."""
+        for B in bases:
+            Bs = B[self.rows]
+            Bs = Bs[:, np.abs(Bs).max(axis=0) > 0] if Bs.size else Bs
+            if not Bs.shape[1]:
+                continue
+            u, sv, _ = np.linalg.svd(Bs, full_matrices=False)
+            q = u[:, sv > 1e-10 * sv[0]]
+            if len(self.rows) - q.shape[1] >= MIN_REML_DOF:
+                self.basis = q
+                return
 
     def nll(self, ch: ChannelNoise, r: np.ndarray) -> float:
         """-2 log (restricted) likelihood of ``r`` (this series' rows) under ``ch``, up to a
@@ -452,7 +455,7 @@ def longest_correlation_s(dt: float, ramp: float) -> float:
 
 def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
               correlated: bool = True, drift: bool = True,
-              systematic: np.ndarray | None = None) -> NoiseModel:
+              systematic: np.ndarray | list | None = None) -> NoiseModel:
     """Maximum-likelihood noise model of ``residual`` (recorded minus model), per series
     (curve and channel: the noise of one channel may differ between tests).
 
@@ -466,12 +469,18 @@ def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
     part orthogonal to those columns,
     ``log|S| + log|B^T S^-1 B| + r^T (S^-1 - S^-1 B (B^T S^-1 B)^-1 B^T S^-1) r``,
     so that a smooth misfit the model lacks cannot be absorbed by the correlated
-    component, and the degrees of freedom the columns take are accounted for."""
+    component, and the degrees of freedom the columns take are accounted for.  Or a list
+    of such column sets, the fullest first: each series keeps out the first that leaves it
+    ``MIN_REML_DOF`` degrees of freedom (a short series, where the whole set would not,
+    still keeps out what fits: a series kept whole would let its noise take up any
+    smooth misfit)."""
     r = np.asarray(residual, float)
     series = _series(obs)
-    if systematic is not None and systematic.shape[1]:
+    bases = [systematic] if isinstance(systematic, np.ndarray) else list(systematic or [])
+    bases = [B for B in bases if B.shape[1]]
+    if bases:
         for s in series:
-            s.restrict(systematic)
+            s.restrict(bases)
     dt, ramp = time_scales(obs)
     sd0 = estimate_noise(obs, r)
     params, rivals = {}, {}

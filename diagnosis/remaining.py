@@ -114,6 +114,12 @@ def _trend_curves(obs: pd.DataFrame):
             yield rows, tt
 
 
+def trend_rows(obs: pd.DataFrame) -> np.ndarray:
+    """Positions of the rows :func:`trend_basis` covers (the curves of several cycles)."""
+    parts = [rows for rows, _ in _trend_curves(obs.reset_index(drop=True))]
+    return np.concatenate(parts) if parts else np.zeros(0, int)
+
+
 def trend_span(obs: pd.DataFrame) -> float:
     """The time unit of :func:`trend_basis` [s]: the longest curve of several cycles (0
     when there is none): its coefficient is the relative change of the stiffness over
