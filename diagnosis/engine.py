@@ -59,6 +59,7 @@ from .notes import (
     contact_notes,
     edge_notes,
     noise_doubt,
+    one_kind_doubt,
     slowest_wander_doubt,
     threshold_doubt,
     wander_doubt,
@@ -100,7 +101,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-24"
+ENGINE_VERSION = "2026.11-open-world-25"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
@@ -127,7 +128,7 @@ class Diagnosis:
     notes: list = field(default_factory=list)
     # effects fitted that explain too little, or beside a stiffness trend (``decide``)
     tried: list = field(default_factory=list)
-    cannot_tell: str = ""  # why a `none`/`explained` may hide a misfit taken for wander
+    cannot_tell: str = ""  # why the verdict may not be what the recordings determine
     timings: dict = field(default_factory=dict)  # wall time of each stage [s]
     # how large the candidates not named would have to be to show beside the final model
     detection_limits: dict = field(default_factory=dict)  # (diagnosis.screen.detection_limits)
@@ -362,7 +363,8 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     undetermined, rivals = noise_doubt(rounds, status, chosen, _rival_outcome(
         obs, base, current, in_model, final_noise, alpha, bic_margin))
     doubt = "; ".join(filter(None, [doubt, slowest_wander_doubt(status, rem, final_noise),
-                                    threshold_doubt(status, rem, alpha), undetermined]))
+                                    threshold_doubt(status, rem, alpha), undetermined,
+                                    one_kind_doubt(chosen, obs)]))
     if rivals and not undetermined:
         notes.append("the recordings leave the slow part of the noise undetermined in "
                      f"{', '.join(p['where'] for p in rivals)} (two noise models neither "

@@ -501,6 +501,23 @@ def test_noise_model_degrees_of_freedom_for_the_tests():
                                             rel=1e-12)
 
 
+def test_a_second_ogden_term_from_one_kind_of_test_is_a_cannot_tell():
+    """A second Ogden term named from compression/tension alone or torsion alone says it
+    cannot tell it from a fibre family (one mode of deformation: any law bending that one
+    response alike fits as well); named from both kinds, or any other effect from one
+    kind, it does not."""
+    from diagnosis.notes import one_kind_doubt
+
+    obs, _ = _two_curves(4, 2)  # compression_tension and torsion
+    ct = obs[obs["curve"] == "compression_tension"]
+    tors = obs[obs["curve"] == "torsion"]
+    assert "compression/tension tests alone" in one_kind_doubt(["ogden_2term"], ct)
+    assert "a torsion test" in one_kind_doubt(["ogden_2term", "viscoelastic"], ct)
+    assert "torsion tests alone" in one_kind_doubt(["ogden_2term"], tors)
+    assert one_kind_doubt(["ogden_2term"], obs) == ""
+    assert one_kind_doubt(["viscoelastic"], ct) == one_kind_doubt([], tors) == ""
+
+
 def test_a_misfit_taken_for_the_slowest_wander_is_a_cannot_tell():
     """One cycle (loading 0 -> 0.15 and back, 12 points per ramp at 1 s, 20 draws of white
     noise of SD 1): a smooth misfit that a model without hysteresis leaves, amplitude 4 of a
