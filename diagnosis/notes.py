@@ -110,7 +110,6 @@ def threshold_doubt(status: str, rem: dict, alpha: float) -> str:
                      "remains is not settled by these recordings" for what, t in torn)
 
 
-
 def one_kind_doubt(named: list, obs) -> str:
     """Why a second Ogden term named from one kind of test cannot be trusted, or ''.
     Compression/tension alone, or torsion alone, record one mode of deformation; a second
@@ -130,6 +129,7 @@ def one_kind_doubt(named: list, obs) -> str:
     return (f"a second Ogden term named from {kind} tests alone: a fibre family along the "
             "axis, or another law that bends this one response alike, would fit as well; a "
             f"{other} test of the same specimen tells them apart")
+
 
 def noise_doubt(rounds: list, status: str, named: list, final: dict) -> tuple[str, list]:
     """Where the noise the recordings leave undetermined decides: the cannot-tell text
