@@ -6,8 +6,9 @@
   noise model allows, in recordings without a repeated cycle; a test of what remains whose
   likelihood ratio and BIC disagree; a decision that depends on which of two noise models
   the recordings leave open);
-* :func:`one_kind_doubt`: a law's form (a second Ogden term) named from one kind of test,
-  which another law (a fibre family) would fit as well;
+* :func:`one_kind_doubt`: a law's form (a second Ogden term), or artefacts that only bend
+  the torsion response, named from one kind of test, which another law (a fibre family)
+  would fit as well;
 * :func:`edge_notes`: fits that stopped where the model could not be solved;
 * :func:`contact_notes`, :func:`contact_event_notes`: points recorded off the specimen,
   and where the model lets go of it (lift-off) against where the recordings say.
@@ -110,25 +111,56 @@ def threshold_doubt(status: str, rem: dict, alpha: float) -> str:
                      "remains is not settled by these recordings" for what, t in torn)
 
 
-def one_kind_doubt(named: list, obs) -> str:
-    """Why a second Ogden term named from one kind of test cannot be trusted, or ''.
-    Compression/tension alone, or torsion alone, record one mode of deformation; a second
-    Ogden term is one isotropic way to bend that response, and any other law that bends it
-    alike fits as well: a fibre family along the axis does, and only the other kind of
-    test (through :func:`diagnosis.remaining.split_test`) tells them apart.  Measured on
-    the open benchmark's four draws (open-world-23/24): of the 28 specimens with one kind
-    of test named ``ogden_2term``, 7 were axial fibres outside the library (all of the
-    fibre cases so named); of the 39 with both kinds, none was."""
-    if "ogden_2term" not in named:
-        return ""
+# An offset this many standard errors from zero is determined by the recordings
+DETERMINED = 2.0
+
+
+def one_kind_doubt(named: list, obs, fit: Fit | None = None) -> str:
+    """Why an effect named from one kind of test cannot be trusted, or ''.
+    Compression/tension alone, or torsion alone, record one mode of deformation, and any law
+    that bends that one response alike fits as well; only the other kind of test (through
+    :func:`diagnosis.remaining.split_test`) tells them apart.  Two effects do such bending:
+
+    * a second Ogden term, one isotropic way to bend it. Measured on the open benchmark's
+      four draws (open-world-23/24): of the 28 specimens with one kind of test named
+      ``ogden_2term``, 7 were axial fibres outside the library (all of the fibre cases so
+      named); of the 39 with both kinds, none was.
+    * in torsion alone, ``artefacts`` whose stretch offset comes with a load-cell offset of
+      the axial force that cancels the force the offset itself makes at rest (both beyond
+      :data:`DETERMINED` standard errors, of opposite sign: a pre-stretched specimen with
+      its load cell zeroed). Torsion sees a stretch offset only through how it bends the
+      torque and axial force with the twist, and with its own force taken away, only that
+      bend is left. Measured on five draws (open-world-25, written after seeing them): of
+      21 torsion-only specimens named with ``artefacts``, 6 had both offsets so determined,
+      all wrong (5 axial fibres, 1 viscoelasticity + a second Ogden term); the 14 right
+      ones had none (their generator draws no load-cell offset; the largest force offset
+      among them was 1.7 standard errors)."""
     shear = shear_rows(obs)
     if shear.any() and not shear.all():
         return ""
     kind, other = (("torsion", "compression/tension") if shear.all()
                    else ("compression/tension", "torsion"))
-    return (f"a second Ogden term named from {kind} tests alone: a fibre family along the "
-            "axis, or another law that bends this one response alike, would fit as well; a "
-            f"{other} test of the same specimen tells them apart")
+    said = []
+    if "ogden_2term" in named:
+        said.append(f"a second Ogden term named from {kind} tests alone: a fibre family along "
+                    "the axis, or another law that bends this one response alike, would fit "
+                    f"as well; a {other} test of the same specimen tells them apart")
+    if "artefacts" in named and shear.all() and fit is not None:
+        vals = {str(k): v for k, v in fit.values.items()}
+        errs = {str(k): v for k, v in fit.stderr.items()}
+        z = {k: vals[k] / errs[k] for k in ("stretch_offset", "force_offset")
+             if k in vals and errs.get(k, 0.0) > 0.0}
+        if (len(z) == 2 and min(abs(v) for v in z.values()) > DETERMINED
+                and z["stretch_offset"] * z["force_offset"] < 0.0):
+            said.append(
+                "artefacts named from torsion tests alone: a stretch offset of "
+                f"{vals['stretch_offset']:.3g} ({abs(z['stretch_offset']):.1f} standard "
+                f"errors) with an axial-force offset of {vals['force_offset']:.3g} mN "
+                f"({abs(z['force_offset']):.1f}) that cancels its force at rest leaves only how "
+                "the offset bends the torsion response, which a fibre family along the axis "
+                "or another law bends alike; a compression/tension test of the same specimen "
+                "tells them apart")
+    return "; ".join(said)
 
 
 def noise_doubt(rounds: list, status: str, named: list, final: dict) -> tuple[str, list]:

@@ -518,6 +518,38 @@ def test_a_second_ogden_term_from_one_kind_of_test_is_a_cannot_tell():
     assert one_kind_doubt(["viscoelastic"], ct) == one_kind_doubt([], tors) == ""
 
 
+def test_artefacts_that_only_bend_a_torsion_response_are_a_cannot_tell():
+    """Torsion alone sees a stretch offset only through how it bends the response; with an
+    axial-force offset cancelling the force the stretch offset makes at rest (both beyond
+    2 standard errors, opposite signs: a pre-stretched specimen, its load cell zeroed), the
+    named artefacts are that bend alone, which a fibre family makes too. The values are
+    world076's of the open benchmark's seed 5 (axial fibres named ``artefacts``: stretch
+    offset 0.0159 +- 0.0004, force offset -10.4 +- 0.36 mN) and world074's of seed 3 (a
+    right ``artefacts``: -0.0066 +- 0.0009 with -0.65 +- 0.39 mN, the same sign)."""
+    from brain_fe.parameters import Param
+    from diagnosis.fitting import Fit
+    from diagnosis.notes import one_kind_doubt
+
+    def fit(stretch, force):
+        names = [Param("stretch_offset"), Param("force_offset"), Param("torque_offset")]
+        vals = dict(zip(names, (stretch[0], force[0], 0.01), strict=True))
+        errs = dict(zip(names, (stretch[1], force[1], 0.1), strict=True))
+        return Fit("artefacts", names, vals, 0.0, 0, np.zeros(0), np.zeros(0), 0, errs)
+
+    obs, _ = _two_curves(4, 2)
+    tors = obs[obs["curve"] == "torsion"]
+    fibres = fit((0.0159, 0.0004), (-10.39, 0.364))
+    doubt = one_kind_doubt(["artefacts"], tors, fibres)
+    assert "artefacts named from torsion tests alone" in doubt
+    assert "(39.8 standard errors)" in doubt and "(28.5)" in doubt
+    assert one_kind_doubt(["artefacts"], tors, fit((-0.0066, 0.0009), (-0.65, 0.39))) == ""
+    assert one_kind_doubt(["artefacts"], tors, fit((0.0159, 0.0004), (-0.7, 0.36))) == ""
+    assert one_kind_doubt(["artefacts"], obs, fibres) == ""  # both kinds of test
+    assert one_kind_doubt(["viscoelastic"], tors, fibres) == ""
+    both = one_kind_doubt(["artefacts", "ogden_2term"], tors, fibres)
+    assert both.startswith("a second Ogden term") and "; artefacts named" in both
+
+
 def test_a_misfit_taken_for_the_slowest_wander_is_a_cannot_tell():
     """One cycle (loading 0 -> 0.15 and back, 12 points per ramp at 1 s, 20 draws of white
     noise of SD 1): a smooth misfit that a model without hysteresis leaves, amplitude 4 of a
