@@ -60,6 +60,7 @@ from .notes import (
     edge_notes,
     noise_doubt,
     one_kind_doubt,
+    slow_doubt,
     slowest_wander_doubt,
     threshold_doubt,
     wander_doubt,
@@ -91,6 +92,7 @@ from .selection import (
     MODEL_FAILURES,
     Context,
     Union,
+    chi2_needed,
     compare,
     compatible,
     run_round,
@@ -101,7 +103,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-27"
+ENGINE_VERSION = "2026.11-open-world-28"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
@@ -337,7 +339,12 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                         "makes, and the effects fitted beside it may stand in for part of "
                         "it, so none is named" if trend else ""))
     slow = slow_relaxation(obs, current) if tried else {}
-    if slow:
+    if slow:  # judged again under the noise of the base fit, which may hold the rig's drift
+        nb = _noise_of(obs, base, noise)
+        z0, z1 = nb.whiten(base.residual(obs)), nb.whiten(current.residual(obs))
+        slow["gain_under_base_noise"] = float(z0 @ z0 - z1 @ z1)
+        slow["needed"] = chi2_needed(current.k - base.k, 1, len(obs), alpha, bic_margin,
+                                     nb.nu_of_gain(z0**2 - z1**2))
         notes.append(f"the closest model holds a relaxation slower than the longest test "
                      f"(tau {slow['tau_s']:.3g} s, the test {slow['longest_test_s']:.3g} s): "
                      "over the test it is a slow change of the stress with time, which a "
@@ -371,7 +378,8 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         obs, base, current, in_model, final_noise, alpha, bic_margin))
     doubt = "; ".join(filter(None, [doubt, slowest_wander_doubt(status, rem, final_noise),
                                     threshold_doubt(status, rem, alpha), undetermined,
-                                    one_kind_doubt(chosen, obs, current)]))
+                                    one_kind_doubt(chosen, obs, current),
+                                    slow_doubt(slow)]))
     if rivals and not undetermined:
         notes.append("the recordings leave the slow part of the noise undetermined in "
                      f"{', '.join(p['where'] for p in rivals)} (two noise models neither "

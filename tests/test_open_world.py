@@ -254,6 +254,25 @@ def test_a_relaxation_slower_than_the_test_is_not_named():
     assert decide([], False, 1.0, 1.0, slow=True) == ("none", [], [])
 
 
+def test_a_slow_relaxation_the_base_noise_calls_drift_is_a_cannot_tell():
+    """Seed 6's world118, a control (127 points of compression/tension, three cycles) whose
+    rig drifted: its final model's relaxation (472 s over a 367 s test) gains 8.7 in
+    -2 log L on 2 parameters under the noise model of the base fit's residual, which has
+    the drift back, against the bar of one candidate, 2 log 127 + 10 = 19.7 (the BIC
+    margin decides here): *cannot tell* whether anything but the rig's drift is there.
+    Seed 4's world104, a permanent set, gains 25.6 there and is not flagged."""
+    from diagnosis.notes import slow_doubt
+    from diagnosis.selection import chi2_needed
+
+    needed = chi2_needed(2, 1, 127)
+    assert needed == pytest.approx(2 * np.log(127) + 10.0)
+    slow = {"tau_s": 472.0, "longest_test_s": 367.0, "needed": needed}
+    assert "gains only 8.7 in -2 log L (19.7 needed)" in slow_doubt(
+        {**slow, "gain_under_base_noise": 8.7})
+    assert slow_doubt({**slow, "gain_under_base_noise": 25.6}) == ""
+    assert slow_doubt({}) == ""
+
+
 def test_wander_far_above_the_stated_noise_is_a_cannot_tell():
     """A single loading ramp of a real torsion (fungi shear 1): its residual passed as noise
     only with a wander of SD 3.08 mN mm against the instrument's 0.074: `cannot tell`,
