@@ -103,7 +103,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-28"
+ENGINE_VERSION = "2026.11-open-world-29"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
@@ -494,7 +494,8 @@ def decide(chosen: list, systematic: bool, rms_before: float, rms_after: float, 
     describes all tests with one set of parameters, so the physics that tells them apart
     is not among them, and a named effect would stand in for it.  The same, systematic
     misfit left or not, when the final model holds a relaxation slower than the longest
-    test (``slow``, :func:`slow_relaxation`)."""
+    test (``slow``, :func:`slow_relaxation`); the *cannot tell* notes that apply only to
+    ``none`` and ``explained`` then fall away with the names."""
     if not chosen:
         return ("unexplained" if systematic else "none"), [], []
     if slow:
@@ -525,19 +526,22 @@ def slow_relaxation(obs: pd.DataFrame, f: Fit) -> dict:
     than its time, a relaxation has not decayed to a third: it is a slow, nearly steady
     change of the stress with time, which a drift of the stiffness, a set left by the
     loading or the rig's own drift make alike, and the recordings do not tell which (a hold
-    longer than the relaxation time does).  Measured on the open benchmark's five draws
+    longer than the relaxation time does).  A relaxation of no strength (beta 0) is none;
+    a curve's span is that of its finite times.  Measured on the open benchmark's five draws
     (open-world-25/26, written after seeing them): of 147 final models with a relaxation,
     the 106 of viscoelastic specimens had it at most 0.65 of the longest test; 8 others had
     it slower than the test and named it (4 permanent sets and 1 axial fibre family,
     outside the library; 2 single effects given a spurious relaxation beside them; a
     compressibility named viscoelastic), and 20 more that were already unexplained."""
     vals = {str(k): v for k, v in f.values.items()}
-    if "log10_tau_0" not in vals or "time_s" not in obs:
+    if ("log10_tau_0" not in vals or not vals.get("beta_0", 0.0) > 0.0
+            or "time_s" not in obs or "curve" not in obs):
         return {}
     t = pd.to_numeric(obs["time_s"], errors="coerce")
-    spans = t.groupby(obs["curve"]).agg(lambda x: float(np.ptp(x)) if x.notna().all() else 0)
+    spans = t.groupby(obs["curve"]).agg(
+        lambda x: float(x.max() - x.min()) if x.notna().sum() >= 2 else 0.0)
     longest, tau = float(spans.max()) if len(spans) else 0.0, 10.0 ** vals["log10_tau_0"]
-    if not longest > 0 or tau <= longest:
+    if not (longest > 0 and np.isfinite(tau) and tau > longest):
         return {}
     return {"tau_s": tau, "longest_test_s": longest}
 

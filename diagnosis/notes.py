@@ -134,9 +134,9 @@ def one_kind_doubt(named: list, obs, fit: Fit | None = None) -> str:
       torque and axial force with the twist, and with its own force taken away, only that
       bend is left. Measured on five draws (open-world-25, written after seeing them): of
       21 torsion-only specimens named with ``artefacts``, 6 had both offsets so determined,
-      all wrong (5 axial fibres, 1 viscoelasticity + a second Ogden term); the 14 right
-      ones had none (their generator draws no load-cell offset; the largest force offset
-      among them was 1.7 standard errors)."""
+      all wrong (5 axial fibres, 1 viscoelasticity + a second Ogden term), 1 wrong pair
+      had not; the 14 right ones had none (their generator draws no load-cell offset; the
+      largest force offset among them was 1.7 standard errors)."""
     shear = shear_rows(obs)
     if shear.any() and not shear.all():
         return ""
@@ -172,7 +172,9 @@ def slow_doubt(slow: dict) -> str:
     gain it needs there).  An effect is judged under the noise its own fit leaves, and a
     slow relaxation empties that noise of a slow drift or wander; under the noise of the
     fit without it, which keeps them, the gain can fall short.  Then the recordings do not
-    tell a slow change of the specimen from the rig's drift.  Measured: the open
+    tell a slow change of the specimen from the rig's drift.  The gain is the whole final
+    model's over the base fit: beside other effects that carry the gain, a relaxation that
+    earns nothing is not flagged.  Measured: the open
     benchmark's seed 6 world118, a control whose rig drifted (8e-5 kPa/s), gains 8.7 under
     the base fit's noise (which has that drift back, 8.1e-5) and 103.4 under its own
     (written after seeing it); seed 1's world089, a permanent set, 5.7 and 36.2."""

@@ -544,6 +544,7 @@ def test_artefacts_that_only_bend_a_torsion_response_are_a_cannot_tell():
     assert "(39.8 standard errors)" in doubt and "(28.5)" in doubt
     assert one_kind_doubt(["artefacts"], tors, fit((-0.0066, 0.0009), (-0.65, 0.39))) == ""
     assert one_kind_doubt(["artefacts"], tors, fit((0.0159, 0.0004), (-0.7, 0.36))) == ""
+    assert one_kind_doubt(["artefacts"], tors, fit((0.0159, 0.0004), (10.39, 0.364))) == ""
     assert one_kind_doubt(["artefacts"], obs, fibres) == ""  # both kinds of test
     assert one_kind_doubt(["viscoelastic"], tors, fibres) == ""
     both = one_kind_doubt(["artefacts", "ogden_2term"], tors, fibres)

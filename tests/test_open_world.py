@@ -246,6 +246,12 @@ def test_a_relaxation_slower_than_the_test_is_not_named():
                                                "longest_test_s": pytest.approx(23.0)}
     assert slow_relaxation(obs, fit(0.65 * 23.0)) == {}
     assert slow_relaxation(obs.assign(time_s=np.nan), fit(64.1)) == {}  # no clock
+    # one lost time stamp leaves the torsion's span: the rule stands
+    lost = obs.assign(time_s=obs["time_s"].where(obs.index != 5))
+    assert slow_relaxation(lost, fit(64.1))["longest_test_s"] == pytest.approx(23.0)
+    nothing = Fit("viscoelastic", [], {Param("beta", 0): 0.0, Param("log10_tau", 0): 2.0},
+                  0.0, 0, None, None, 0)
+    assert slow_relaxation(obs, nothing) == {}  # a relaxation of no strength
     base = Fit("base", [Param("mu", 0)], {Param("mu", 0): 1.0}, 0.0, 0, None, None, 0)
     assert slow_relaxation(obs, base) == {}
     assert decide(["viscoelastic"], False, 1.6, 1.0, slow=True) == (
