@@ -340,11 +340,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                         "it, so none is named" if trend else ""))
     slow = slow_relaxation(obs, current) if tried else {}
     if slow:  # judged again under the noise of the base fit, which may hold the rig's drift
-        nb = _noise_of(obs, base, noise)
-        z0, z1 = nb.whiten(base.residual(obs)), nb.whiten(current.residual(obs))
-        slow["gain_under_base_noise"] = float(z0 @ z0 - z1 @ z1)
-        slow["needed"] = chi2_needed(current.k - base.k, 1, len(obs), alpha, bic_margin,
-                                     nb.nu_of_gain(z0**2 - z1**2))
+        slow.update(_gain_under_base_noise(obs, base, current, noise, alpha, bic_margin))
         notes.append(f"the closest model holds a relaxation slower than the longest test "
                      f"(tau {slow['tau_s']:.3g} s, the test {slow['longest_test_s']:.3g} s): "
                      "over the test it is a slow change of the stress with time, which a "
@@ -544,6 +540,20 @@ def slow_relaxation(obs: pd.DataFrame, f: Fit) -> dict:
     if not (longest > 0 and np.isfinite(tau) and tau > longest):
         return {}
     return {"tau_s": tau, "longest_test_s": longest}
+
+
+def _gain_under_base_noise(obs, base: Fit, current: Fit, stated, alpha: float = ALPHA,
+                           bic_margin: float = BIC_MARGIN) -> dict:
+    """``current``'s gain in -2 log L over ``base`` under the noise model of ``base``'s
+    residual (:func:`_noise_of`), and the gain its extra parameters need there as one
+    candidate (:func:`diagnosis.selection.chi2_needed`).  The selection judges an effect
+    under the noise its own fit leaves; an effect that takes up a slow part of the noise
+    (the rig's drift) empties that noise of it, and only the base fit's noise shows it."""
+    nb = _noise_of(obs, base, stated)
+    z0, z1 = nb.whiten(base.residual(obs)), nb.whiten(current.residual(obs))
+    return {"gain_under_base_noise": float(z0 @ z0 - z1 @ z1),
+            "needed": chi2_needed(current.k - base.k, 1, len(obs), alpha, bic_margin,
+                                  nb.nu_of_gain(z0**2 - z1**2))}
 
 
 def _what_remains(obs, current: Fit, stated, alpha, bic_margin):

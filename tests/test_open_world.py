@@ -280,6 +280,43 @@ def test_a_slow_relaxation_the_base_noise_calls_drift_is_a_cannot_tell():
     assert slow_doubt({}) == ""
 
 
+def test_an_effect_that_takes_the_rigs_drift_gains_nothing_under_the_base_noise():
+    """The mechanism behind :func:`diagnosis.notes.slow_doubt`, on a planted rig drift.
+    Three cycles of 40 points (120 at 1 s), white noise of SD 1 and a drift from the tare
+    (the noise model's own form) reaching 3 SDs at the end.  The base fit leaves both.  An
+    effect whose columns span the drift (a slow relaxation: t and t^2) leaves the white
+    noise only.  Under the noise of its own residual, which keeps its columns out, the
+    effect gains 63-474 in -2 log L over the base (8 draws measured), far above the 19.6
+    that 2 parameters need among 120 points (2 log 120 + 10).  Under the noise of the base
+    fit's residual, which has the drift back, it gains at most 1.5 of it."""
+    from test_noise_models import _cycled_obs
+
+    from brain_fe.parameters import Param
+    from diagnosis.engine import _gain_under_base_noise, _noise_of
+    from diagnosis.fitting import Fit
+
+    per_ramp, cycles = 20, 3
+    n = 2 * cycles * per_ramp
+    x = np.linspace(0.0, 1.0, per_ramp)
+    shape = np.tile(np.r_[np.sin(np.pi * x), np.sin(np.pi * x[::-1])], cycles)
+    t = np.arange(float(n))
+    drift = 3.0 * t / np.ptp(t)
+    obs = _cycled_obs(np.zeros(n), per_ramp)
+    names = [Param("mu", 0), Param("alpha", 0)]
+    J = np.c_[shape, shape**2]
+    for seed in range(8):
+        white = np.random.default_rng(seed).normal(0.0, 1.0, n)
+        base = Fit("base", names, {}, 0.0, n, drift + white, None, 0, jacobian=J)
+        slow = Fit("viscoelastic", [*names, Param("beta", 0), Param("log10_tau", 0)], {},
+                   0.0, n, white, None, 0, jacobian=np.c_[J, drift, drift**2])
+        judged = _gain_under_base_noise(obs, base, slow, None)
+        assert judged["needed"] == pytest.approx(2 * np.log(n) + 10.0)
+        assert judged["gain_under_base_noise"] < 2.0 < judged["needed"]
+        own = _noise_of(obs, slow, None)
+        z0, z1 = own.whiten(base.residual(obs)), own.whiten(slow.residual(obs))
+        assert z0 @ z0 - z1 @ z1 > 3 * judged["needed"]
+
+
 def test_wander_far_above_the_stated_noise_is_a_cannot_tell():
     """A single loading ramp of a real torsion (fungi shear 1): its residual passed as noise
     only with a wander of SD 3.08 mN mm against the instrument's 0.074: `cannot tell`,
