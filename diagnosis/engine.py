@@ -46,7 +46,7 @@ import numpy as np
 import pandas as pd
 
 from brain_fe.ends import resolve
-from brain_fe.parameters import Param
+from brain_fe.parameters import Param, Parameters
 from simulators.coordinates import NU0
 
 from . import locate as loc
@@ -529,7 +529,7 @@ def slow_relaxation(obs: pd.DataFrame, f: Fit) -> dict:
     it slower than the test and named it (4 permanent sets and 1 axial fibre family,
     outside the library; 2 single effects given a spurious relaxation beside them; a
     compressibility named viscoelastic), and 20 more that were already unexplained."""
-    vals = {str(k): v for k, v in f.values.items()}
+    vals = Parameters(f.values)
     if ("log10_tau_0" not in vals or not vals.get("beta_0", 0.0) > 0.0
             or "time_s" not in obs or "curve" not in obs):
         return {}

@@ -22,6 +22,8 @@ import logging
 
 import numpy as np
 
+from brain_fe.parameters import Parameters
+
 from .fitting import Fit
 from .noise import NoiseModel, longest_correlation_s, time_scales
 from .remaining import shear_rows
@@ -148,8 +150,7 @@ def one_kind_doubt(named: list, obs, fit: Fit | None = None) -> str:
                     "the axis, or another law that bends this one response alike, would fit "
                     f"as well; a {other} test of the same specimen tells them apart")
     if "artefacts" in named and shear.all() and fit is not None:
-        vals = {str(k): v for k, v in fit.values.items()}
-        errs = {str(k): v for k, v in fit.stderr.items()}
+        vals, errs = Parameters(fit.values), Parameters(fit.stderr)
         z = {k: vals[k] / errs[k] for k in ("stretch_offset", "force_offset")
              if k in vals and errs.get(k, 0.0) > 0.0}
         if (len(z) == 2 and min(abs(v) for v in z.values()) > DETERMINED
@@ -174,10 +175,10 @@ def slow_doubt(slow: dict) -> str:
     fit without it, which keeps them, the gain can fall short.  Then the recordings do not
     tell a slow change of the specimen from the rig's drift.  The gain is the whole final
     model's over the base fit: beside other effects that carry the gain, a relaxation that
-    earns nothing is not flagged.  Measured: the open
-    benchmark's seed 6 world118, a control whose rig drifted (8e-5 kPa/s), gains 8.7 under
-    the base fit's noise (which has that drift back, 8.1e-5) and 103.4 under its own
-    (written after seeing it); seed 1's world089, a permanent set, 5.7 and 36.2."""
+    earns nothing is not flagged.  Measured: the open benchmark's seed 6 world118, a
+    control whose rig drifted (8e-5 kPa/s), gains 8.7 under the base fit's noise (which
+    has that drift back, 8.1e-5) and 103.4 under its own (written after seeing it); seed
+    1's world089, a permanent set, 5.7 and 36.2."""
     if not slow or "needed" not in slow or slow["gain_under_base_noise"] >= slow["needed"]:
         return ""
     return ("under the noise model of the base fit's residual, which keeps the slow drift "
