@@ -103,9 +103,10 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.11-open-world-29"
+ENGINE_VERSION = "2026.12-open-world-30"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
+RELAXATION = "viscoelastic"  # the effect whose relaxation time :func:`slow_relaxation` reads
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
 # least halve the RMS misfit (in units of the noise) and what they leave holds no stiffness
 # trend with time (physics no library effect makes, which they may stand in for); otherwise
@@ -152,6 +153,9 @@ class Diagnosis:
     # beside it their parameter's variance is inflated HIDDEN_INFLATION times or more
     # (:func:`diagnosis.screen.hidden_behind`)
     hidden: list = field(default_factory=list)
+    # a relaxation slower than the longest test in the final model (:func:`slow_relaxation`)
+    # and what it gains over the fit without it under that fit's noise ({} when none)
+    slow: dict = field(default_factory=dict)
 
     @property
     def verdict(self) -> str:
@@ -229,6 +233,7 @@ class Diagnosis:
             "noise_model": self.noise.describe(),
             "noise_rivals": self.noise_rivals,
             "drift_model": self.drift,
+            "slow_relaxation": self.slow,
             "rms_by_curve_before": self.rms(self.base),
             "rms_by_curve_after": self.rms(w),
             "base_parameters": _plain(self.base.values),
@@ -339,8 +344,13 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                         "makes, and the effects fitted beside it may stand in for part of "
                         "it, so none is named" if trend else ""))
     slow = slow_relaxation(obs, current) if tried else {}
-    if slow:  # judged again under the noise of the base fit, which may hold the rig's drift
-        slow.update(_gain_under_base_noise(obs, base, current, noise, alpha, bic_margin))
+    if slow:  # judged again under the noise of the fit without it, which may hold the
+        # rig's drift that the relaxation takes up
+        with sharing(sim, comm):
+            without = _without(ctx, base, current, in_model, RELAXATION)
+        slow["without"] = None if without is None else without.effect  # None: its fit failed
+        if without is not None:
+            slow.update(_gain_under_noise_of(obs, without, current, noise, alpha, bic_margin))
         notes.append(f"the closest model holds a relaxation slower than the longest test "
                      f"(tau {slow['tau_s']:.3g} s, the test {slow['longest_test_s']:.3g} s): "
                      "over the test it is a slow change of the stress with time, which a "
@@ -406,7 +416,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     return Diagnosis(base, current, chosen, status, rounds, final_noise, located, rem,
                      ambiguous, disc, time.perf_counter() - t0, obs, notes, tried, doubt,
                      timings, limits, masked, list(errors), noise_rivals=rivals,
-                     drift=drift, hidden=hidden)
+                     drift=drift, hidden=hidden, slow=slow)
 
 
 def _limits(ctx: Context, comm, current: Fit, in_model: list, named: list, J: np.ndarray,
@@ -542,17 +552,34 @@ def slow_relaxation(obs: pd.DataFrame, f: Fit) -> dict:
     return {"tau_s": tau, "longest_test_s": longest}
 
 
-def _gain_under_base_noise(obs, base: Fit, current: Fit, stated, alpha: float = ALPHA,
-                           bic_margin: float = BIC_MARGIN) -> dict:
-    """``current``'s gain in -2 log L over ``base`` under the noise model of ``base``'s
-    residual (:func:`_noise_of`), and the gain its extra parameters need there as one
-    candidate (:func:`diagnosis.selection.chi2_needed`).  The selection judges an effect
-    under the noise its own fit leaves; an effect that takes up a slow part of the noise
-    (the rig's drift) empties that noise of it, and only the base fit's noise shows it."""
-    nb = _noise_of(obs, base, stated)
-    z0, z1 = nb.whiten(base.residual(obs)), nb.whiten(current.residual(obs))
-    return {"gain_under_base_noise": float(z0 @ z0 - z1 @ z1),
-            "needed": chi2_needed(current.k - base.k, 1, len(obs), alpha, bic_margin,
+def _without(ctx: Context, base: Fit, current: Fit, in_model: list, effect: str) -> Fit | None:
+    """The fit of ``current``'s model (effects ``in_model``) without ``effect``: ``base``
+    when it is the only one, else the other effects refitted from ``current``'s values less
+    its parameters (as the re-test does); None when that fit fails."""
+    rest = [e for e in in_model if e != effect]
+    if not rest:
+        return base
+    start = {k: v for k, v in current.values.items() if k not in ctx.lib[effect].names}
+    try:
+        return fit(ctx.sim, ctx.obs, ctx.weights, start, parameter_names(ctx.lib, rest),
+                   effect="+".join(rest), max_nfev=ctx.max_nfev, effect_def=_union(ctx, rest))
+    except MODEL_FAILURES as exc:  # no reference to judge it against: no doubt is raised
+        log.warning("the fit without %s failed: %s", effect, exc)
+        return None
+
+
+def _gain_under_noise_of(obs, without: Fit, current: Fit, stated, alpha: float = ALPHA,
+                         bic_margin: float = BIC_MARGIN) -> dict:
+    """``current``'s gain in -2 log L over ``without`` (its model less some effects) under
+    the noise model of ``without``'s residual (:func:`_noise_of`), and the gain its extra
+    parameters need there as one candidate (:func:`diagnosis.selection.chi2_needed`).  The
+    selection judges an effect under the noise its own fit leaves; an effect that takes up
+    a slow part of the noise (the rig's drift) empties that noise of it, and only the noise
+    of the fit without the effect shows it."""
+    nb = _noise_of(obs, without, stated)
+    z0, z1 = nb.whiten(without.residual(obs)), nb.whiten(current.residual(obs))
+    return {"gain_under_noise_without": float(z0 @ z0 - z1 @ z1),
+            "needed": chi2_needed(current.k - without.k, 1, len(obs), alpha, bic_margin,
                                   nb.nu_of_gain(z0**2 - z1**2))}
 
 

@@ -9,8 +9,8 @@
 * :func:`one_kind_doubt`: a law's form (a second Ogden term), or artefacts that only bend
   the torsion response, named from one kind of test, which another law (a fibre family)
   would fit as well;
-* :func:`slow_doubt`: a misfit taken by a relaxation slower than the test that the base
-  fit's noise model (with the rig's drift) calls noise;
+* :func:`slow_doubt`: a misfit taken by a relaxation slower than the test that the noise
+  model of the fit without it (with the rig's drift) calls noise;
 * :func:`edge_notes`: fits that stopped where the model could not be solved;
 * :func:`contact_notes`, :func:`contact_event_notes`: points recorded off the specimen,
   and where the model lets go of it (lift-off) against where the recordings say.
@@ -169,22 +169,22 @@ def one_kind_doubt(named: list, obs, fit: Fit | None = None) -> str:
 def slow_doubt(slow: dict) -> str:
     """Why a misfit taken by a relaxation slower than the test may be no more than the
     rig's noise, or '': ``slow`` (:func:`diagnosis.engine.slow_relaxation`, with the final
-    model's gain over the base fit under the noise model of the base fit's residual and the
-    gain it needs there).  An effect is judged under the noise its own fit leaves, and a
-    slow relaxation empties that noise of a slow drift or wander; under the noise of the
-    fit without it, which keeps them, the gain can fall short.  Then the recordings do not
-    tell a slow change of the specimen from the rig's drift.  The gain is the whole final
-    model's over the base fit: beside other effects that carry the gain, a relaxation that
-    earns nothing is not flagged.  Measured: the open benchmark's seed 6 world118, a
-    control whose rig drifted (8e-5 kPa/s), gains 8.7 under the base fit's noise (which
-    has that drift back, 8.1e-5) and 103.4 under its own (written after seeing it); seed
-    1's world089, a permanent set, 5.7 and 36.2."""
-    if not slow or "needed" not in slow or slow["gain_under_base_noise"] >= slow["needed"]:
+    model's gain over the fit of its model without the relaxation, under the noise model
+    of that fit's residual, and the gain it needs there).  An effect is judged under the
+    noise its own fit leaves, and a slow relaxation empties that noise of a slow drift or
+    wander; under the noise of the fit without it, which keeps them, the gain can fall
+    short.  Then the recordings do not tell a slow change of the specimen from the rig's
+    drift.  Measured: the open benchmark's seed 6 world118, a control whose rig drifted
+    (8e-5 kPa/s), gains 8.7 under the base fit's noise (which has that drift back, 8.1e-5)
+    and 103.4 under its own (written after seeing it); seed 1's world089, a permanent set,
+    5.7 and 36.2."""
+    if not slow or "needed" not in slow or slow["gain_under_noise_without"] >= slow["needed"]:
         return ""
-    return ("under the noise model of the base fit's residual, which keeps the slow drift "
-            "or wander the closest model's relaxation takes up, that model gains only "
-            f"{slow['gain_under_base_noise']:.1f} in -2 log L ({slow['needed']:.1f} "
-            "needed): the misfit may be the rig's drift and nothing of the specimen")
+    return (f"under the noise model of the fit without it ({slow['without']}), which keeps "
+            "the slow drift or wander the closest model's relaxation takes up, the "
+            f"relaxation gains only {slow['gain_under_noise_without']:.1f} in -2 log L "
+            f"({slow['needed']:.1f} needed): the misfit it takes may be the rig's drift and "
+            "nothing of the specimen")
 
 
 def noise_doubt(rounds: list, status: str, named: list, final: dict) -> tuple[str, list]:

@@ -274,10 +274,12 @@ def test_a_slow_relaxation_the_base_noise_calls_drift_is_a_cannot_tell():
     needed = chi2_needed(2, 1, 127)
     assert needed == pytest.approx(2 * np.log(127) + 10.0)
     slow = {"tau_s": 472.0, "longest_test_s": 367.0, "needed": needed}
-    assert "gains only 8.7 in -2 log L (19.7 needed)" in slow_doubt(
-        {**slow, "gain_under_base_noise": 8.7})
-    assert slow_doubt({**slow, "gain_under_base_noise": 1239.9}) == ""
+    said = slow_doubt({**slow, "gain_under_noise_without": 8.7, "without": "base"})
+    assert "gains only 8.7 in -2 log L (19.7 needed)" in said and "(base)" in said
+    assert slow_doubt({**slow, "gain_under_noise_without": 1239.9, "without": "base"}) == ""
     assert slow_doubt({}) == ""
+    # the fit without the relaxation failed: nothing to judge it against, no doubt
+    assert slow_doubt({"tau_s": 472.0, "longest_test_s": 367.0, "without": None}) == ""
 
 
 def test_an_effect_that_takes_the_rigs_drift_gains_nothing_under_the_base_noise():
@@ -292,7 +294,7 @@ def test_an_effect_that_takes_the_rigs_drift_gains_nothing_under_the_base_noise(
     from test_noise_models import _cycled_obs
 
     from brain_fe.parameters import Param
-    from diagnosis.engine import _gain_under_base_noise, _noise_of
+    from diagnosis.engine import _gain_under_noise_of, _noise_of
     from diagnosis.fitting import Fit
 
     per_ramp, cycles = 20, 3
@@ -309,12 +311,49 @@ def test_an_effect_that_takes_the_rigs_drift_gains_nothing_under_the_base_noise(
         base = Fit("base", names, {}, 0.0, n, drift + white, None, 0, jacobian=J)
         slow = Fit("viscoelastic", [*names, Param("beta", 0), Param("log10_tau", 0)], {},
                    0.0, n, white, None, 0, jacobian=np.c_[J, drift, drift**2])
-        judged = _gain_under_base_noise(obs, base, slow, None)
+        judged = _gain_under_noise_of(obs, base, slow, None)
         assert judged["needed"] == pytest.approx(2 * np.log(n) + 10.0)
-        assert judged["gain_under_base_noise"] < 2.0 < judged["needed"]
+        assert judged["gain_under_noise_without"] < 2.0 < judged["needed"]
         own = _noise_of(obs, slow, None)
         z0, z1 = own.whiten(base.residual(obs)), own.whiten(slow.residual(obs))
         assert z0 @ z0 - z1 @ z1 > 3 * judged["needed"]
+
+
+def test_a_slow_relaxation_is_judged_against_the_fit_without_it(monkeypatch):
+    """The reference of :func:`diagnosis.notes.slow_doubt`: the base fit when the relaxation
+    is the final model's only effect (no refit), else the model's other effects refitted
+    from the final values less the relaxation's; no reference (so no doubt) when that refit
+    fails.  A compressibility given a slow relaxation beside it is judged against the
+    compressibility alone, not against the base model that lacks it too."""
+    from types import SimpleNamespace
+
+    import diagnosis.engine as eng
+    from brain_fe.parameters import Param
+    from brain_fe.solver import ConvergenceError
+    from diagnosis.effects import library, parameter_names
+
+    lib = library("fe")
+    calls = []
+
+    def fit(sim, obs, weights, start, names, *, effect, max_nfev, effect_def):
+        calls.append((effect, dict(start), list(names)))
+        if effect == "mullins":
+            raise ConvergenceError("Newton failed")
+        return SimpleNamespace(effect=effect, values=start)
+
+    monkeypatch.setattr(eng, "fit", fit)
+    ctx = SimpleNamespace(sim=None, obs=None, weights=None, lib=lib, max_nfev=15)
+    base = SimpleNamespace(effect="base")
+    final = SimpleNamespace(values={Param.parse(k): v for k, v in {
+        "mu_0": 1.9, "nu0": 0.45, "beta_0": 0.4, "log10_tau_0": 2.7}.items()})
+    assert eng._without(ctx, base, final, ["viscoelastic"], "viscoelastic") is base and not calls
+    got = eng._without(ctx, base, final, ["compressibility", "viscoelastic"],
+                       "viscoelastic")
+    assert got.effect == "compressibility"
+    (effect, start, names), = calls
+    assert set(map(str, start)) == {"mu_0", "nu0"}
+    assert names == parameter_names(lib, ["compressibility"])
+    assert eng._without(ctx, base, final, ["mullins", "viscoelastic"], "viscoelastic") is None
 
 
 def test_wander_far_above_the_stated_noise_is_a_cannot_tell():
