@@ -552,17 +552,23 @@ def slow_relaxation(obs: pd.DataFrame, f: Fit) -> dict:
     return {"tau_s": tau, "longest_test_s": longest}
 
 
+def _refit_without(ctx: Context, current: Fit, in_model: list, effect: str) -> Fit:
+    """``current``'s model (effects ``in_model``) less ``effect``, refitted from
+    ``current``'s values less its parameters; the model's failures are raised."""
+    rest = [e for e in in_model if e != effect]
+    start = {k: v for k, v in current.values.items() if k not in ctx.lib[effect].names}
+    return fit(ctx.sim, ctx.obs, ctx.weights, start, parameter_names(ctx.lib, rest),
+               effect="+".join(rest), max_nfev=ctx.max_nfev, effect_def=_union(ctx, rest))
+
+
 def _without(ctx: Context, base: Fit, current: Fit, in_model: list, effect: str) -> Fit | None:
     """The fit of ``current``'s model (effects ``in_model``) without ``effect``: ``base``
-    when it is the only one, else the other effects refitted from ``current``'s values less
-    its parameters (as the re-test does); None when that fit fails."""
-    rest = [e for e in in_model if e != effect]
-    if not rest:
+    when it is the only one, else :func:`_refit_without` (as the re-test does); None when
+    that fit fails."""
+    if all(e == effect for e in in_model):
         return base
-    start = {k: v for k, v in current.values.items() if k not in ctx.lib[effect].names}
     try:
-        return fit(ctx.sim, ctx.obs, ctx.weights, start, parameter_names(ctx.lib, rest),
-                   effect="+".join(rest), max_nfev=ctx.max_nfev, effect_def=_union(ctx, rest))
+        return _refit_without(ctx, current, in_model, effect)
     except MODEL_FAILURES as exc:  # no reference to judge it against: no doubt is raised
         log.warning("the fit without %s failed: %s", effect, exc)
         return None
@@ -717,11 +723,8 @@ def _retest(ctx: Context, current: Fit, chosen: list, noise) -> tuple[Fit, list,
     rival = noise.rival() if noise is not None else None
     for e in list(chosen if len(chosen) > 1 else ()):
         rest = [c for c in chosen if c != e]
-        start = {k: v for k, v in current.values.items() if k not in ctx.lib[e].names}
         try:
-            without = fit(ctx.sim, ctx.obs, ctx.weights, start,
-                          parameter_names(ctx.lib, rest), effect="+".join(rest),
-                          max_nfev=ctx.max_nfev, effect_def=_union(ctx, rest))
+            without = _refit_without(ctx, current, chosen, e)
         except MODEL_FAILURES as exc:  # cannot do without it: it stays
             log.warning("re-test without %s failed: %s", e, exc)
             continue
