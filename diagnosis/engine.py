@@ -62,6 +62,7 @@ from .notes import (
     one_kind_doubt,
     slow_doubt,
     slowest_wander_doubt,
+    split_doubt,
     threshold_doubt,
     wander_doubt,
 )
@@ -385,7 +386,9 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     doubt = "; ".join(filter(None, [doubt, slowest_wander_doubt(status, rem, final_noise),
                                     threshold_doubt(status, rem, alpha), undetermined,
                                     one_kind_doubt(chosen, obs, current),
-                                    slow_doubt(slow)]))
+                                    slow_doubt(slow),
+                                    split_doubt(status, rem, _status_without_split(
+                                        obs, current, in_model, rem, rms_base, rms_final))]))
     if rivals and not undetermined:
         notes.append("the recordings leave the slow part of the noise undetermined in "
                      f"{', '.join(p['where'] for p in rivals)} (two noise models neither "
@@ -524,6 +527,16 @@ def _status_under(obs, base: Fit, current: Fit, in_model: list, nm: NoiseModel,
                    trend=rem["trend"]["significant"], split=rem["split"]["significant"],
                    slow=bool(slow_relaxation(obs, current))),
             (rms_base, rms_final))
+
+
+def _status_without_split(obs, current: Fit, in_model: list, rem: dict, rms_base: float,
+                          rms_final: float) -> str:
+    """The status :func:`decide` would give if the shear tests did not ask for other
+    parameters (for :func:`diagnosis.notes.split_doubt`)."""
+    trend = rem["trend"]["significant"]
+    systematic = bool(rem["located"]) or rem["reproducible"]["significant"] or trend
+    return decide(in_model, systematic, rms_base, rms_final, trend=trend,
+                  slow=bool(slow_relaxation(obs, current)))[0]
 
 
 def slow_relaxation(obs: pd.DataFrame, f: Fit) -> dict:
