@@ -69,6 +69,7 @@ from .notes import (
 from .remaining import (
     remaining,
     split_words,
+    systematic,
     systematic_basis,
     trend_basis,
     trend_change,
@@ -533,9 +534,8 @@ def _status_without_split(obs, current: Fit, in_model: list, rem: dict, rms_base
                           rms_final: float) -> str:
     """The status :func:`decide` would give if the shear tests did not ask for other
     parameters (for :func:`diagnosis.notes.split_doubt`)."""
-    trend = rem["trend"]["significant"]
-    systematic = bool(rem["located"]) or rem["reproducible"]["significant"] or trend
-    return decide(in_model, systematic, rms_base, rms_final, trend=trend,
+    return decide(in_model, systematic(rem, besides=("split",)), rms_base, rms_final,
+                  trend=rem["trend"]["significant"],
                   slow=bool(slow_relaxation(obs, current)))[0]
 
 

@@ -298,9 +298,10 @@ def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 
         return nu_gain(obs, dof, gain)
 
     B, how = reproducible_basis(obs)
+    Bw = noise.whiten_jacobian(B) if B.shape[1] else B
     rep = {"repeats": how, "gain": 0.0, "dof": 0, "p_value": 1.0, "significant": False}
     if B.shape[1]:
-        rep.update(_lrt(noise.whiten_jacobian(B), z, len(obs), alpha, bic_margin, nu))
+        rep.update(_lrt(Bw, z, len(obs), alpha, bic_margin, nu))
     trend = {"gain": 0.0, "dof": 0, "p_value": 1.0, "significant": False}
     if prediction is not None:
         T = trend_basis(obs, np.asarray(prediction, float))
@@ -316,8 +317,16 @@ def remaining(obs: pd.DataFrame, residual: np.ndarray, noise, *, alpha: float = 
                              span_s=trend_span(obs))
     split = split_test(obs, z, noise, jacobian, list(names), alpha, bic_margin, nu,
                        prediction, smooth=None if rep["significant"] or not B.shape[1]
-                       else noise.whiten_jacobian(B))
-    return {"located": located, "reproducible": rep, "trend": trend, "split": split,
-            "systematic": bool(located) or rep["significant"] or trend["significant"]
-            or split["significant"],
-            "table": table}
+                       else Bw)
+    out = {"located": located, "reproducible": rep, "trend": trend, "split": split,
+           "table": table}
+    out["systematic"] = systematic(out)
+    return out
+
+
+def systematic(rem: dict, besides: tuple = ()) -> bool:
+    """Whether what :func:`remaining` found leaves a systematic misfit: a located one, or
+    a significant repeated misfit, stiffness trend or split, those tests named in
+    ``besides`` left out (what the status would be without them)."""
+    return bool(rem["located"]) or any(rem[k]["significant"] for k in (
+        "reproducible", "trend", "split") if k not in besides)
