@@ -147,13 +147,18 @@ def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dic
     active = [j for j in range(len(names)) if j < nb or norms[j] > 1e-9 * scale]
     scale_a = np.where(norms[active] > 0, norms[active], 1.0)  # of the active columns
     Ja = J[:, active] / scale_a
-    step, *_ = np.linalg.lstsq(Ja, -z, rcond=None)
-    predicted = float(np.sum((z + Ja @ step) ** 2))
+    # columns of Ja that take their Gauss-Newton step: an effect parameter at a bound
+    # of its range (a relaxation, a softening or a second Ogden term of no strength) whose
+    # step leaves the range is held there and the rest solved without it, so that the
+    # score is the one-sided statistic of a parameter on its boundary: the gain the
+    # effect can bring within its range, not one a fit clipped to the bound cannot have
+    free, step = _within_bounds(effect, [names[j] for j in active], values, Ja, z,
+                                scale_a, nb)
+    predicted = float(np.sum((z + Ja[:, free] @ step) ** 2))
     Jb = J[:, :nb] / np.where(norms[:nb] > 0, norms[:nb], 1.0)
     sb, *_ = np.linalg.lstsq(Jb, -z_cur, rcond=None)
     current_chi2 = float(np.sum((z_cur + Jb @ sb) ** 2))
     start = dict(values)
-    free = list(range(len(active)))  # columns of Ja that take their Gauss-Newton step
     held = []
     while True:
         d = step / scale_a[free]
@@ -191,6 +196,29 @@ PER_POINT = ("mullins",)
 # derivative at a point says where they show (a glue layer's chi-square grows about as its
 # compliance 1/k); stated from direct solves along their own coordinate (_compliance_limits)
 IN_COMPLIANCE = ("imperfect_gluing",)
+
+
+def _within_bounds(effect, names: list, values: dict, Ja: np.ndarray, z: np.ndarray,
+                   scale: np.ndarray, nb: int) -> tuple[list, np.ndarray]:
+    """The columns of ``Ja`` (parameters ``names``, the first ``nb`` the current model's)
+    free to step, and their least-squares step on ``-z``: an effect parameter at a bound
+    of its range whose step (``/ scale``) points out of it is held at the bound, and the
+    step solved again without it, until no step leaves the range (the Kuhn-Tucker point
+    of the linearised problem with those bounds, reached by dropping active ones)."""
+    free = list(range(len(names)))
+    while True:
+        step, *_ = np.linalg.lstsq(Ja[:, free], -z, rcond=None)
+        out = []
+        for k, dk in zip(free, step / scale[free], strict=True):
+            name = names[k]
+            if k < nb or name not in effect.names:
+                continue
+            lo, hi = effect.bounds(name)
+            if (values[name] <= lo and dk < 0) or (values[name] >= hi and dk > 0):
+                out.append(k)
+        if not out:
+            return free, step
+        free = [k for k in free if k not in out]
 
 
 def design_scales(sim, obs: pd.DataFrame, values: dict) -> dict:

@@ -34,8 +34,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
+from brain_fe.parameters import Param
+
 from .effects import parameter_names
-from .fitting import Fit, fit
+from .fitting import Fit, UnsolvableStart, fit
 from .noise import lrt_p_value
 from .screen import design, design_scales, score
 
@@ -130,14 +132,50 @@ class Round:
                                       for e, f in self.fits.items()}}
 
 
-def _fit(ctx: Context, start: dict, effects: list, label: str, nfev: int):
-    try:
-        return fit(ctx.sim, ctx.obs, ctx.weights, start,
-                   parameter_names(ctx.lib, effects, ctx.base_names), effect=label,
-                   max_nfev=nfev, effect_def=Union(ctx.lib, effects))
-    except MODEL_FAILURES as exc:  # a model that cannot follow the data is reported
-        log.warning("fit of %s failed: %s", label, exc)
+def _fit(ctx: Context, start: dict, effects: list, label: str, nfev: int,
+         fallback: dict | None = None):
+    """The fit of ``effects`` from ``start``, or None when the model cannot follow the
+    data.  ``fallback``: a point the model was solved at (a score's design point, with
+    the current fit's values): when ``start`` cannot be solved, the fit starts part of
+    the way back to it, then at it (:data:`BACK_OFF`).  A Gauss-Newton step from a design
+    point can land where the model's Newton solver fails (a strong relaxation at a short
+    time); the effect is then fitted from nearer where it was scored rather than left out
+    of every round (open-world-32: seed 7's world043, a viscoelastic + Mullins pair whose
+    viscoelastic fit failed at its start, answered ``unexplained``)."""
+    names = parameter_names(ctx.lib, effects, ctx.base_names)
+    tries = [start] + ([] if fallback is None else [_toward(fallback, start, s)
+                                                     for s in BACK_OFF])
+    for i, x0 in enumerate(tries):
+        try:
+            return fit(ctx.sim, ctx.obs, ctx.weights, x0, names, effect=label,
+                       max_nfev=nfev, effect_def=Union(ctx.lib, effects))
+        except UnsolvableStart as exc:
+            if i + 1 < len(tries):
+                log.info("fit of %s: %s; starting nearer the design point", label, exc)
+                continue
+            log.warning("fit of %s failed: %s", label, exc)
+        except MODEL_FAILURES as exc:  # a model that cannot follow the data is reported
+            log.warning("fit of %s failed: %s", label, exc)
         return None
+    return None
+
+
+# Where a fit starts when the Gauss-Newton start cannot be solved: the share of the step
+# from the design point kept, in turn (0: the design point, solved already)
+BACK_OFF = (0.5, 0.0)
+
+
+def _toward(point: dict, start: dict, share: float) -> dict:
+    """``start`` with each parameter ``point`` also holds moved back to ``point`` by
+    1 - ``share`` of the way."""
+    return {k: float(point[k]) + share * (float(v) - float(point[k])) if k in point
+            else v for k, v in start.items()}
+
+
+def design_values(current: Fit, sc) -> dict:
+    """The parameters a score ``sc`` was taken at: the ``current`` fit's with the design
+    point's (the model was solved there)."""
+    return {**current.values, **{Param.parse(k): float(v) for k, v in sc.point.items()}}
 
 
 class Union:
@@ -153,8 +191,9 @@ class Union:
 def run_round(ctx: Context, current: Fit, current_effects: list, candidates: list,
               J_current: np.ndarray, progress=None, first: Round | None = None) -> Round:
     """Score and fit every candidate added to the current model.  After the first round
-    (``first``), only the candidates it fitted are considered, each at the design point
-    whose fit won there (:func:`second_start`): an effect with no score at the base fit
+    (``first``), only the candidates it screened in are considered (fitted, or failed to
+    fit), each at the design point whose fit won there (:func:`second_start`; the best
+    scoring one if it failed): an effect with no score at the base fit
     is not unmasked by another effect in practice, and every later round follows the
     recorded path of a history model, where a score costs several seconds."""
     obs, sim = ctx.obs, ctx.sim
@@ -164,7 +203,9 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
         scales = design_scales(sim, obs, current.values)
         points = [(e, p) for e in candidates for p in design(ctx.lib[e], sim.nu0, scales)]
     else:
-        candidates = [e for e in candidates if e in first.fits]
+        # fitted there, or screened in and failed (the model could not follow it from
+        # the base fit; from another effect's fit it may)
+        candidates = [e for e in candidates if e in first.fits or e in first.failed]
         points = [(e, first.scores[e].point) for e in candidates]
 
     def one_score(item):
@@ -193,7 +234,8 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
         progress(f"+{'+'.join(current_effects) or 'base'}: fitting {', '.join(to_fit) or '-'}")
     label = {e: "+".join([*current_effects, e]) for e in to_fit}
     results = ctx.share(starts, lambda it: _fit(ctx, it[1].start, [*current_effects, it[0]],
-                                                label[it[0]], RANKING_NFEV),
+                                                label[it[0]], RANKING_NFEV,
+                                                design_values(current, it[1])),
                         lambda it: it[1].seconds)
     fits: dict = {}
     for (e, sc), f in zip(starts, results, strict=True):  # the better of an effect's starts

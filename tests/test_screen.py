@@ -506,3 +506,60 @@ def test_the_report_says_when_the_effect_just_added_lost_its_place():
     assert "| compressibility | 62.1 | -120.0 | 4.5e-29 | yes | nu0 = 0.4884 |" in lines
     plain = _round_lines({"from": "base", "added": None, "dropped": [], "table": []})
     assert plain[0] == "From **base**: added nothing" and plain[-1] == ""
+
+
+def test_a_fit_whose_gauss_newton_start_cannot_be_solved_starts_nearer_its_design_point():
+    """y = mu a + beta b, recorded at mu = 2, beta = 0.2, by a model whose solver fails for
+    beta > 0.15 (as a strong relaxation at a short time makes the FE Newton fail).  The
+    score's Gauss-Newton start (beta 0.2, exact on this linear model) cannot be solved:
+    without a fallback the effect is left out (None); with its design point (beta 0) the
+    fit starts half-way back (beta 0.1, solvable), and ends at the solvable edge, the
+    constrained least-squares optimum (beta 0.15, mu by least squares there; 1e-3)."""
+    import pandas as pd
+
+    from diagnosis.selection import Context, _fit, design_values
+    from diagnosis.sharing import share_with
+
+    sim, obs, a, b, current = _problem(0.2)
+    tried = []
+
+    def predict(values, names, solve=sim.predict):
+        tried.append(float(values[EFF]))
+        if values[EFF] > 0.15:
+            raise RuntimeError("Newton failed")
+        return solve(values, names)
+
+    solver = types.SimpleNamespace(predict=predict, nu0=0.49)
+    s = score(solver, _Obs(obs), np.ones(40), current, _Effect, {"beta_0": 0.0}, [MU],
+              a[:, None])
+    assert abs(s.start[EFF] - 0.2) < 1e-10
+    ctx = Context(solver, pd.DataFrame(obs), np.ones(40), {"linear": _Effect}, [MU], 1e-3,
+                  10.0, 40, share_with(None))
+    assert _fit(ctx, s.start, ["linear"], "linear", 40) is None
+    tried.clear()
+    f = _fit(ctx, s.start, ["linear"], "linear", 40, design_values(current, s))
+    assert tried[0] == pytest.approx(0.2) and tried[1] == pytest.approx(0.1)
+    mu_edge = float(a @ (obs["value"] - 0.15 * b) / (a @ a))
+    assert f.values[EFF] == pytest.approx(0.15, abs=1e-3)
+    assert f.values[MU] == pytest.approx(mu_edge, abs=1e-3)
+
+
+def test_the_score_of_an_effect_at_its_bound_is_one_sided():
+    """Recorded at beta = -0.1 with beta bounded below by its neutral 0 (a relaxation, a
+    softening or a second Ogden term cannot be negative): the two-sided Gauss-Newton step
+    would promise the chi-square of beta = -0.1, which a fit clipped to the bound cannot
+    have (open-world-32: second Ogden terms scored at up to 3400 whose fits ended at
+    mu_1 = 0 with nothing gained).  The score is the one-sided statistic: nothing (1e-9),
+    beta held at 0, mu the least-squares fit of the base alone (1e-10); at beta = +0.1 the
+    step is taken as before, exact on this linear model."""
+    sim, obs, a, b, current = _problem(-0.1)
+    s = score(sim, _Obs(obs), np.ones(40), current, _Effect, {"beta_0": 0.0}, [MU],
+              a[:, None])
+    assert s.lm < 1e-9 and s.start[EFF] == 0.0
+    assert abs(s.start[MU] - float(a @ obs["value"] / (a @ a))) < 1e-10
+    sim, obs, a, b, current = _problem(0.1)
+    s = score(sim, _Obs(obs), np.ones(40), current, _Effect, {"beta_0": 0.0}, [MU],
+              a[:, None])
+    resid = obs["value"] - float(a @ obs["value"] / (a @ a)) * a  # the base's best misfit
+    assert abs(s.lm - float(resid @ resid)) < 1e-9
+    assert abs(s.start[EFF] - 0.1) < 1e-10 and abs(s.start[MU] - 2.0) < 1e-10
