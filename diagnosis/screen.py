@@ -46,12 +46,15 @@ CUBE_LOG10_K = (-3.0, -0.5, 1.0, 2.5)
 @dataclass
 class Score:
     effect: str
-    lm: float  # predicted chi-square reduction
+    lm: float  # predicted chi-square reduction (one-sided at a bound: _within_bounds)
     dof: int  # active effect parameters
     start: dict  # Gauss-Newton start of the effect's fit (all parameters)
     point: dict  # the neutral design point the score was taken at
     seconds: float = 0.0  # cost of the prediction (a guide to the cost of the fit)
     held: tuple = ()  # effect parameters whose step was too long: they start at the point
+    # the reduction with no bound held (two-sided): what the effect's direction could do
+    # beside another effect, where the sign the base fit asks for may turn
+    lm_free: float = 0.0
 
 
 def data_scales(obs: pd.DataFrame, values: dict, height_mm: float = 5.0) -> dict:
@@ -155,6 +158,8 @@ def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dic
     free, step = _within_bounds(effect, [names[j] for j in active], values, Ja, z,
                                 scale_a, nb)
     predicted = float(np.sum((z + Ja[:, free] @ step) ** 2))
+    step_free, *_ = np.linalg.lstsq(Ja, -z, rcond=None)
+    predicted_free = float(np.sum((z + Ja @ step_free) ** 2))
     Jb = J[:, :nb] / np.where(norms[:nb] > 0, norms[:nb], 1.0)
     sb, *_ = np.linalg.lstsq(Jb, -z_cur, rcond=None)
     current_chi2 = float(np.sum((z_cur + Jb @ sb) ** 2))
@@ -176,7 +181,7 @@ def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dic
         name = names[active[k]]
         start[name] = values[name] + float(dk)  # the fit clips it to the bounds
     return Score(effect.name, max(current_chi2 - predicted, 0.0), len(active) - nb, start,
-                 point, seconds, tuple(held))
+                 point, seconds, tuple(held), max(current_chi2 - predicted_free, 0.0))
 
 
 # Candidates whose neutral point is finite and whose every parameter acts there (no

@@ -119,6 +119,9 @@ class Round:
     noise: object = None
     failed: list = field(default_factory=list)  # fitted but the model could not be solved
     unscored: list = field(default_factory=list)  # no design point could be solved
+    # first round only: the candidates later rounds offer (fitted, failed, or with a
+    # two-sided score that passes the screen: run_round)
+    alive: list = field(default_factory=list)
     seconds: dict = field(default_factory=dict)  # wall time of the round's stages
     # when the recordings leave the noise undetermined (NoiseModel.rivals): the series,
     # and the effect the round adds under the chosen noise and under the rival (or None)
@@ -191,9 +194,10 @@ class Union:
 def run_round(ctx: Context, current: Fit, current_effects: list, candidates: list,
               J_current: np.ndarray, progress=None, first: Round | None = None) -> Round:
     """Score and fit every candidate added to the current model.  After the first round
-    (``first``), only the candidates it screened in are considered (fitted, or failed to
-    fit), each at the design point whose fit won there (:func:`second_start`; the best
-    scoring one if it failed): an effect with no score at the base fit
+    (``first``), only the candidates it screened in are considered (fitted, failed to
+    fit, or with a two-sided score that would have passed: ``alive``), each at the design
+    point whose fit won there (:func:`second_start`; else the best scoring one): an
+    effect with no score at the base fit
     is not unmasked by another effect in practice, and every later round follows the
     recorded path of a history model, where a score costs several seconds."""
     obs, sim = ctx.obs, ctx.sim
@@ -204,8 +208,10 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
         points = [(e, p) for e in candidates for p in design(ctx.lib[e], sim.nu0, scales)]
     else:
         # fitted there, or screened in and failed (the model could not follow it from
-        # the base fit; from another effect's fit it may)
-        candidates = [e for e in candidates if e in first.fits or e in first.failed]
+        # the base fit; from another effect's fit it may), or kept alive (run_round's
+        # ``alive``)
+        candidates = [e for e in candidates if e in first.fits or e in first.failed
+                      or e in first.alive]
         points = [(e, first.scores[e].point) for e in candidates]
 
     def one_score(item):
@@ -218,14 +224,23 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
 
     scored = ctx.share(points, one_score,
                        lambda it: HISTORY_COST if it[0] in HISTORY else 1.0)
-    best: dict = {}
+    best: dict = {}  # per effect, its best design point: by the one-sided score, a tie
+    # (none of its points can gain within the bounds) by the two-sided one
     for s in scored:
-        if s is not None and (s.effect not in best or s.lm > best[s.effect].lm):
+        if s is not None and (s.effect not in best or (s.lm, s.lm_free)
+                              > (best[s.effect].lm, best[s.effect].lm_free)):
             best[s.effect] = s
     m = max(len(candidates), 1)
     needed = {e: ctx.needed(len(ctx.lib[e].names), m) for e in best}
     to_fit = [e for e in candidates if e in best and best[e].lm >= SCREEN_FRACTION
               * needed[e]]
+    # what later rounds offer (first round only): the candidates fitted here, and those
+    # whose direction could gain were it not for the sign their bound forbids at the base
+    # fit; beside another effect the sign may turn (Budday's CR: a second Ogden term that
+    # asks for a negative mu_1 at the base fit gains 1121 beside the offsets)
+    alive = [e for e in candidates if e in best and max(
+        s.lm_free for s in scored if s is not None and s.effect == e)
+        >= SCREEN_FRACTION * needed[e]]
     starts = [(e, best[e]) for e in to_fit]
     starts += [(e, s) for e in to_fit
                if (s := second_start(scored, best[e], needed[e])) is not None]
@@ -252,7 +267,7 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
         log.warning("no design point of %s could be solved: not scored, not fitted",
                     ", ".join(unscored))
     return Round(list(current_effects), best, fits, [], failed=failed, seconds=seconds,
-                 unscored=unscored)
+                 unscored=unscored, alive=alive if first is None else [])
 
 
 def second_start(scored: list, best, needed: float):

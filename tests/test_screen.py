@@ -557,6 +557,10 @@ def test_the_score_of_an_effect_at_its_bound_is_one_sided():
               a[:, None])
     assert s.lm < 1e-9 and s.start[EFF] == 0.0
     assert abs(s.start[MU] - float(a @ obs["value"] / (a @ a))) < 1e-10
+    # the two-sided reduction is kept beside it (what later rounds are offered by): the
+    # data are exact, so the unbounded step removes all the base's misfit (1e-9)
+    resid = obs["value"] - float(a @ obs["value"] / (a @ a)) * a
+    assert abs(s.lm_free - float(resid @ resid)) < 1e-9
     sim, obs, a, b, current = _problem(0.1)
     s = score(sim, _Obs(obs), np.ones(40), current, _Effect, {"beta_0": 0.0}, [MU],
               a[:, None])
