@@ -116,6 +116,12 @@ def _too_long(effect, name, step: float) -> bool:
 NUISANCE = {Param("log10_tau", 0), Param("log10_softening_m"), Param("alpha", 1)}
 
 
+def at_point(values: dict, point: dict) -> dict:
+    """The parameters ``values`` with a design ``point``'s in place (its names parsed):
+    where a score is taken, and so where the model was solved."""
+    return {**values, **{Param.parse(k): float(v) for k, v in point.items()}}
+
+
 def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dict,
           base_names, base_jacobian: np.ndarray) -> Score:
     """The chi-square ``effect`` can remove from the ``current`` fit, predicted by one
@@ -123,8 +129,7 @@ def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dic
     move too).  At a neutral point, where the effect model *is* the current one, this is
     the score statistic, and ``base_jacobian`` (the current model's) serves for the base
     columns; elsewhere the point's own Jacobian is used.  Also the Gauss-Newton start."""
-    pt = {Param.parse(k): float(v) for k, v in point.items()}
-    values = {**current.values, **pt}
+    values = at_point(current.values, point)
     scored = [n for n in effect.names if n not in NUISANCE]
     names = list(base_names) + scored
     data = obs["value"].to_numpy(float)
@@ -132,7 +137,7 @@ def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dic
     t0 = time.perf_counter()
     # a point of finite size (a glue layer, a lower nu0) needs its own Jacobian: predicted
     # with it at once (a prediction and its columns do not depend on the other columns asked)
-    own = effect.of_finite_size(pt, sim.nu0)
+    own = effect.of_finite_size(point, sim.nu0)
     pred = sim.predict(values, names if own else scored)
     z = (pred.y - data) / sigma
     neutral = float(np.max(np.abs(z - z_cur))) < 1e-6
@@ -158,8 +163,11 @@ def score(sim, obs: pd.DataFrame, sigma: np.ndarray, current, effect, point: dic
     free, step = _within_bounds(effect, [names[j] for j in active], values, Ja, z,
                                 scale_a, nb)
     predicted = float(np.sum((z + Ja[:, free] @ step) ** 2))
-    step_free, *_ = np.linalg.lstsq(Ja, -z, rcond=None)
-    predicted_free = float(np.sum((z + Ja @ step_free) ** 2))
+    if len(free) < len(active):  # else the step is the two-sided one already
+        step_free, *_ = np.linalg.lstsq(Ja, -z, rcond=None)
+        predicted_free = float(np.sum((z + Ja @ step_free) ** 2))
+    else:
+        predicted_free = predicted
     Jb = J[:, :nb] / np.where(norms[:nb] > 0, norms[:nb], 1.0)
     sb, *_ = np.linalg.lstsq(Jb, -z_cur, rcond=None)
     current_chi2 = float(np.sum((z_cur + Jb @ sb) ** 2))

@@ -34,12 +34,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from brain_fe.parameters import Param
-
 from .effects import parameter_names
 from .fitting import Fit, UnsolvableStart, fit
 from .noise import lrt_p_value
-from .screen import design, design_scales, score
+from .screen import at_point, design, design_scales, score
 
 log = logging.getLogger(__name__)
 
@@ -119,8 +117,8 @@ class Round:
     noise: object = None
     failed: list = field(default_factory=list)  # fitted but the model could not be solved
     unscored: list = field(default_factory=list)  # no design point could be solved
-    # first round only: the candidates later rounds offer (fitted, failed, or with a
-    # two-sided score that passes the screen: run_round)
+    # the candidates later rounds offer, read from the first round (fitted, failed, or
+    # with a two-sided score that passes the screen: run_round)
     alive: list = field(default_factory=list)
     seconds: dict = field(default_factory=dict)  # wall time of the round's stages
     # when the recordings leave the noise undetermined (NoiseModel.rivals): the series,
@@ -175,11 +173,6 @@ def _toward(point: dict, start: dict, share: float) -> dict:
             else v for k, v in start.items()}
 
 
-def design_values(current: Fit, sc) -> dict:
-    """The parameters a score ``sc`` was taken at: the ``current`` fit's with the design
-    point's (the model was solved there)."""
-    return {**current.values, **{Param.parse(k): float(v) for k, v in sc.point.items()}}
-
 
 class Union:
     """The bounds of several effects' parameters, as one effect for :func:`fit`."""
@@ -210,8 +203,7 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
         # fitted there, or screened in and failed (the model could not follow it from
         # the base fit; from another effect's fit it may), or kept alive (run_round's
         # ``alive``)
-        candidates = [e for e in candidates if e in first.fits or e in first.failed
-                      or e in first.alive]
+        candidates = [e for e in candidates if e in first.alive]
         points = [(e, first.scores[e].point) for e in candidates]
 
     def one_score(item):
@@ -226,21 +218,23 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
                        lambda it: HISTORY_COST if it[0] in HISTORY else 1.0)
     best: dict = {}  # per effect, its best design point: by the one-sided score, a tie
     # (none of its points can gain within the bounds) by the two-sided one
+    free: dict = {}  # per effect, its best two-sided score
     for s in scored:
         if s is not None and (s.effect not in best or (s.lm, s.lm_free)
                               > (best[s.effect].lm, best[s.effect].lm_free)):
             best[s.effect] = s
+        if s is not None:
+            free[s.effect] = max(free.get(s.effect, 0.0), s.lm_free)
     m = max(len(candidates), 1)
     needed = {e: ctx.needed(len(ctx.lib[e].names), m) for e in best}
     to_fit = [e for e in candidates if e in best and best[e].lm >= SCREEN_FRACTION
               * needed[e]]
-    # what later rounds offer (first round only): the candidates fitted here, and those
+    # what later rounds offer: the candidates fitted here (or failed to be), and those
     # whose direction could gain were it not for the sign their bound forbids at the base
     # fit; beside another effect the sign may turn (Budday's CR: a second Ogden term that
     # asks for a negative mu_1 at the base fit gains 1121 beside the offsets)
-    alive = [e for e in candidates if e in best and max(
-        s.lm_free for s in scored if s is not None and s.effect == e)
-        >= SCREEN_FRACTION * needed[e]]
+    alive = [e for e in candidates if e in to_fit
+             or (e in free and free[e] >= SCREEN_FRACTION * needed[e])]
     starts = [(e, best[e]) for e in to_fit]
     starts += [(e, s) for e in to_fit
                if (s := second_start(scored, best[e], needed[e])) is not None]
@@ -250,7 +244,7 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
     label = {e: "+".join([*current_effects, e]) for e in to_fit}
     results = ctx.share(starts, lambda it: _fit(ctx, it[1].start, [*current_effects, it[0]],
                                                 label[it[0]], RANKING_NFEV,
-                                                design_values(current, it[1])),
+                                                at_point(current.values, it[1].point)),
                         lambda it: it[1].seconds)
     fits: dict = {}
     for (e, sc), f in zip(starts, results, strict=True):  # the better of an effect's starts
@@ -267,7 +261,7 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
         log.warning("no design point of %s could be solved: not scored, not fitted",
                     ", ".join(unscored))
     return Round(list(current_effects), best, fits, [], failed=failed, seconds=seconds,
-                 unscored=unscored, alive=alive if first is None else [])
+                 unscored=unscored, alive=alive)
 
 
 def second_start(scored: list, best, needed: float):

@@ -517,7 +517,8 @@ def test_a_fit_whose_gauss_newton_start_cannot_be_solved_starts_nearer_its_desig
     constrained least-squares optimum (beta 0.15, mu by least squares there; 1e-3)."""
     import pandas as pd
 
-    from diagnosis.selection import Context, _fit, design_values
+    from diagnosis.screen import at_point
+    from diagnosis.selection import Context, _fit
     from diagnosis.sharing import share_with
 
     sim, obs, a, b, current = _problem(0.2)
@@ -537,7 +538,7 @@ def test_a_fit_whose_gauss_newton_start_cannot_be_solved_starts_nearer_its_desig
                   10.0, 40, share_with(None))
     assert _fit(ctx, s.start, ["linear"], "linear", 40) is None
     tried.clear()
-    f = _fit(ctx, s.start, ["linear"], "linear", 40, design_values(current, s))
+    f = _fit(ctx, s.start, ["linear"], "linear", 40, at_point(current.values, s.point))
     assert tried[0] == pytest.approx(0.2) and tried[1] == pytest.approx(0.1)
     mu_edge = float(a @ (obs["value"] - 0.15 * b) / (a @ a))
     assert f.values[EFF] == pytest.approx(0.15, abs=1e-3)
