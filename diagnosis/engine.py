@@ -388,8 +388,9 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                                     threshold_doubt(status, rem, alpha), undetermined,
                                     one_kind_doubt(chosen, obs, current),
                                     slow_doubt(slow),
-                                    split_doubt(status, rem, _status_without_split(
-                                        obs, current, in_model, rem, rms_base, rms_final))]))
+                                    split_doubt(status, rem, _status_under(
+                                        obs, base, current, in_model, final_noise, rem,
+                                        besides=("split",))[0][0])]))
     if rivals and not undetermined:
         notes.append("the recordings leave the slow part of the noise undetermined in "
                      f"{', '.join(p['where'] for p in rivals)} (two noise models neither "
@@ -518,25 +519,19 @@ def decide(chosen: list, systematic: bool, rms_before: float, rms_after: float, 
 
 
 def _status_under(obs, base: Fit, current: Fit, in_model: list, nm: NoiseModel,
-                  rem: dict) -> tuple[tuple[str, list, list], tuple[float, float]]:
+                  rem: dict, besides: tuple = ()
+                  ) -> tuple[tuple[str, list, list], tuple[float, float]]:
     """:func:`decide` for the final model ``current`` (effects ``in_model``) under the
-    noise model ``nm`` and what it leaves (``rem``), with the RMS misfits of the base
-    and the final model in ``nm``'s SDs."""
+    noise model ``nm`` and what it leaves (``rem``; the tests named in ``besides`` left
+    out, :func:`diagnosis.remaining.systematic`: the status without them), with the RMS
+    misfits of the base and the final model in ``nm``'s SDs."""
     sd = nm.sd()
     rms_base, rms_final = base.rms(obs, sd), current.rms(obs, sd)
-    return (decide(in_model, rem["systematic"], rms_base, rms_final,
-                   trend=rem["trend"]["significant"], split=rem["split"]["significant"],
+    return (decide(in_model, systematic(rem, besides), rms_base, rms_final,
+                   trend=rem["trend"]["significant"] and "trend" not in besides,
+                   split=rem["split"]["significant"] and "split" not in besides,
                    slow=bool(slow_relaxation(obs, current))),
             (rms_base, rms_final))
-
-
-def _status_without_split(obs, current: Fit, in_model: list, rem: dict, rms_base: float,
-                          rms_final: float) -> str:
-    """The status :func:`decide` would give if the shear tests did not ask for other
-    parameters (for :func:`diagnosis.notes.split_doubt`)."""
-    return decide(in_model, systematic(rem, besides=("split",)), rms_base, rms_final,
-                  trend=rem["trend"]["significant"],
-                  slow=bool(slow_relaxation(obs, current)))[0]
 
 
 def slow_relaxation(obs: pd.DataFrame, f: Fit) -> dict:
