@@ -71,6 +71,29 @@ def test_a_pair_is_scored_as_a_set():
     assert _correct({"expected": "none"}, {"verdict": "none"})
 
 
+def test_an_effect_in_the_recordings_that_the_label_judged_invisible_may_be_named():
+    """The label leaves out an effect that stayed below VISIBLE after every draw (seed 8's
+    world023: a second Ogden term of 1.15 noise SD); naming it names what the recordings
+    hold, leaving it out is right too; anything else, and any name for an effect outside
+    the library or on a control, stays wrong."""
+    from diagnosis.open_benchmark import _correct
+
+    single = {"kind": "single", "effects": ["ogden_2term"], "expected": "none"}
+    assert _correct(single, {"verdict": "none"})
+    assert _correct(single, {"verdict": "ogden_2term"})
+    assert not _correct(single, {"verdict": "artefacts+ogden_2term"})
+    assert not _correct(single, {"verdict": "unexplained"})
+    pair = {"kind": "pair", "effects": ["artefacts", "imperfect_gluing"],
+            "expected": "artefacts"}
+    assert _correct(pair, {"verdict": "artefacts"})
+    assert _correct(pair, {"verdict": "artefacts+imperfect_gluing"})
+    assert not _correct(pair, {"verdict": "imperfect_gluing"})
+    assert not _correct({"kind": "outside", "effects": ["axial_fibres"],
+                         "expected": "unexplained"}, {"verdict": "ogden_2term"})
+    assert not _correct({"kind": "control", "effects": [], "expected": "none"},
+                        {"verdict": "artefacts"})
+
+
 def test_pairs_are_also_scored_where_their_tests_separate_both_effects():
     """A pair counts among the separable ones when each effect leaves at least VISIBLE
     noise SDs beside the other (the stored world008: compressibility 0.43 beside a soft
