@@ -426,7 +426,11 @@ def time_scales(obs: pd.DataFrame) -> tuple[float, float]:
 
 
 # The correlated component may be as slow as half a ramp: slower wander cannot be told
-# from a misfit of one ramp by any test, and is left to the misfit (reported, never absorbed)
+# from a misfit of one ramp by any test, and is left to the misfit (reported, never absorbed).
+# A series of several cycles may take a wander as slow as one cycle: the misfit repeated at
+# every cycle is kept out of its likelihood (restricted ML), so what the wander takes is what
+# differs between cycles, which no model of the specimen's response makes (measured: a wander
+# of 9-42 s that the half-ramp bound left to three offsets, on controls of two cycles)
 MAX_CORR_OVER_RAMP = 0.5
 MIN_REML_DOF = 8  # residual degrees of freedom a series keeps after the projection
 # Starts of the drift, as its end value over the series' span in units of the residual's
@@ -447,10 +451,25 @@ NOISE_TIE = 3.84
 RIVAL_FACTOR = 2.0
 
 
-def longest_correlation_s(dt: float, ramp: float) -> float:
+def longest_correlation_s(dt: float, ramp: float, cycle_s: float | None = None) -> float:
     """The longest correlation time the wander may take [s], given the recordings'
-    sampling interval ``dt`` and ramp duration ``ramp`` (:func:`time_scales`)."""
-    return max(MAX_CORR_OVER_RAMP * ramp, dt)
+    sampling interval ``dt`` and ramp duration ``ramp`` (:func:`time_scales`), and for a
+    series of several cycles the duration of one (``cycle_s``, :func:`cycle_duration`)."""
+    return max(MAX_CORR_OVER_RAMP * ramp, dt, cycle_s or 0.0)
+
+
+def cycle_duration(obs: pd.DataFrame, rows: np.ndarray) -> float | None:
+    """The duration of one cycle [s] of the series at ``rows`` (its span over its number of
+    cycles), or None when it holds one cycle or has no clock."""
+    cycles = obs["cycle"].to_numpy()[rows]
+    n = len(np.unique(cycles))
+    if n < 2 or "time_s" not in obs:
+        return None
+    t = obs["time_s"].to_numpy(float)[rows]
+    if not np.isfinite(t).all() or len(t) < 2:
+        return None
+    span = float(t.max() - t.min())
+    return (span + span / (len(t) - 1)) / n  # the last interval closes the last cycle
 
 
 def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
@@ -489,7 +508,10 @@ def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
         rows = np.concatenate([s.rows for s in mine])
         w0 = float(np.median(sd0[rows]))
         fixed = None if not stated or key[1] not in stated else float(stated[key[1]])
-        params[key], rival = _fit_channel(mine, r, w0, fixed, dt, ramp, correlated, drift)
+        cycles = [cycle_duration(obs, s.rows) for s in mine]
+        cycle_s = min(cycles) if all(c is not None for c in cycles) else None
+        params[key], rival = _fit_channel(mine, r, w0, fixed, dt, ramp, correlated, drift,
+                                          cycle_s)
         if rival is not None:
             rivals[key] = rival
     dof = np.empty(len(r))
@@ -504,7 +526,7 @@ def _slow(ch: ChannelNoise, span: float) -> float:
     return math.hypot(ch.corr, ch.drift * span)
 
 
-def _fit_channel(mine, r, w0, fixed_white, dt, ramp, correlated, drift
+def _fit_channel(mine, r, w0, fixed_white, dt, ramp, correlated, drift, cycle_s=None
                  ) -> tuple[ChannelNoise, tuple[ChannelNoise, float] | None]:
     """ML parameters of one channel's noise (log parameters, bounded, L-BFGS-B), and the
     rival optimum (with its -2 log L above the best) when the recordings leave its slow
@@ -520,7 +542,7 @@ def _fit_channel(mine, r, w0, fixed_white, dt, ramp, correlated, drift
         spec.append(("white", w0, 1e-6 * scale, 10 * scale))
     if correlated:
         spec += [("corr", 0.3 * w0, 1e-6 * scale, 10 * scale),
-                 ("corr_s", 2 * dt, 0.5 * dt, longest_correlation_s(dt, ramp))]
+                 ("corr_s", 2 * dt, 0.5 * dt, longest_correlation_s(dt, ramp, cycle_s))]
     if drift:
         spec.append(("drift", scale / t_span, 1e-8 * scale / t_span,
                      10 * scale / t_span))
@@ -544,13 +566,21 @@ def _fit_channel(mine, r, w0, fixed_white, dt, ramp, correlated, drift
 
     if not names:
         return make(np.array([])), None
-    ends = []
+    starts = []
     for factor in DRIFT_STARTS if drift else DRIFT_STARTS[:1]:
         x0 = x_start.copy()
         if drift:
             x0[names.index("drift")] += np.log(factor)
-        ends.append(minimize(nll, np.clip(x0, lo, hi), method="L-BFGS-B",
-                             bounds=list(zip(lo, hi, strict=True)), options={"maxiter": 200}))
+        starts.append(x0)
+    if correlated and cycle_s:  # and one at the slowest wander a cycle allows: a wander
+        x0 = x_start.copy()  # beside a short filter's correlation is a second optimum
+        x0[names.index("corr_s")] = hi[names.index("corr_s")]
+        if drift:
+            x0[names.index("drift")] += np.log(DRIFT_STARTS[0])
+        starts.append(x0)
+    ends = [minimize(nll, np.clip(x0, lo, hi), method="L-BFGS-B",
+                     bounds=list(zip(lo, hi, strict=True)), options={"maxiter": 200})
+            for x0 in starts]
     best = ends[0]
     for res in ends[1:]:
         if res.fun < best.fun - 1e-9:  # a tie keeps the first start

@@ -311,9 +311,11 @@ def test_an_effect_that_takes_the_rigs_drift_gains_nothing_under_the_base_noise(
     (the noise model's own form) reaching 3 SDs at the end.  The base fit leaves both.  An
     effect whose columns span the drift (a slow relaxation: t and t^2) leaves the white
     noise only.  Under the noise of its own residual, which keeps its columns out, the
-    effect gains 63-474 in -2 log L over the base (8 draws measured), far above the 19.6
-    that 2 parameters need among 120 points (2 log 120 + 10).  Under the noise of the base
-    fit's residual, which has the drift back, it gains at most 1.5 of it."""
+    effect gains 49-459 in -2 log L over the base (8 draws measured; 63-474 before
+    open-world-33, whose noise model may take a wander as slow as a cycle: one white draw
+    gets a wander of SD 0.42 at 28 s, and its gain falls from 131 to 49), above twice the
+    19.6 that 2 parameters need among 120 points (2 log 120 + 10).  Under the noise of the
+    base fit's residual, which has the drift back, it gains at most 1.5 of it."""
     from test_noise_models import _cycled_obs
 
     from brain_fe.parameters import Param
@@ -339,7 +341,7 @@ def test_an_effect_that_takes_the_rigs_drift_gains_nothing_under_the_base_noise(
         assert judged["gain_under_noise_without"] < 2.0 < judged["needed"]
         own = _noise_of(obs, slow, None)
         z0, z1 = own.whiten(base.residual(obs)), own.whiten(slow.residual(obs))
-        assert z0 @ z0 - z1 @ z1 > 3 * judged["needed"]
+        assert z0 @ z0 - z1 @ z1 > 2 * judged["needed"]
 
 
 def test_a_slow_relaxation_is_judged_against_the_fit_without_it(monkeypatch):
