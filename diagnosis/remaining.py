@@ -1,7 +1,8 @@
 r"""What a model leaves unexplained, told apart from the rig's noise.
 
 Two tests on the residual of the final model, whitened with the noise model estimated from
-it (white noise, wander correlated over at most half a ramp, drift from the tare):
+it (white noise, wander correlated over at most half a ramp, or one cycle in a series of
+several, drift from the tare):
 
 * **located**: the protocol's segments (:mod:`diagnosis.locate`) with chi-square and runs
   tests on the whitened residual, which is standard white noise where the model is right;
@@ -144,8 +145,8 @@ def systematic_basis(obs: pd.DataFrame, prediction: np.ndarray | None = None) ->
     with a ``prediction``, the stiffness trend), to be kept out of the noise model
     (:func:`diagnosis.noise.fit_noise`'s ``systematic``).  Wander slower than a ramp is
     nearly the same on both sides of a turn and is then partly kept out as well: beyond
-    the noise model's contract (correlation over at most half a ramp), it may be reported
-    as misfit."""
+    the noise model's contract (correlation over at most half a ramp, or one cycle in a
+    series of several), it may be reported as misfit."""
     obs = obs.reset_index(drop=True)
     B, _ = reproducible_basis(obs)
     if prediction is not None:
