@@ -173,7 +173,6 @@ def _toward(point: dict, start: dict, share: float) -> dict:
             else v for k, v in start.items()}
 
 
-
 class Union:
     """The bounds of several effects' parameters, as one effect for :func:`fit`."""
 

@@ -371,8 +371,9 @@ def test_noise_model_finds_a_drift_its_first_start_cannot(seed, monkeypatch):
                    (1e-8, 0.0025, 0.005, 0.0075, 0.01, 0.015)))
     assert nll(fitted) <= grid + 0.01
     monkeypatch.setattr(noise, "DRIFT_STARTS", noise.DRIFT_STARTS[:1])
-    # and without the start at a wander as slow as a cycle (these 3 cycles have it since
-    # open-world-33): from there seed 9 reaches a 7 s wander instead, 0.8 above the grid
+    # and as a series of one cycle (these 3 cycles may take a wander as slow as a cycle,
+    # with one more start there, since open-world-33: with them seed 9 reaches a 7 s
+    # wander instead, 0.8 above the grid)
     monkeypatch.setattr(noise, "cycle_duration", lambda obs, rows: None)
     (first_only,) = fit_noise(obs, r).params.values()
     assert nll(first_only) > grid + 1.0
