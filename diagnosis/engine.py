@@ -59,6 +59,7 @@ from .notes import (
     contact_notes,
     edge_notes,
     noise_doubt,
+    offset_doubt,
     one_kind_doubt,
     slow_doubt,
     slowest_wander_doubt,
@@ -105,7 +106,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.12-open-world-33"
+ENGINE_VERSION = "2026.12-open-world-34"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 RELAXATION = "viscoelastic"  # the effect whose relaxation time :func:`slow_relaxation` reads
@@ -387,6 +388,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     doubt = "; ".join(filter(None, [doubt, slowest_wander_doubt(status, rem, final_noise),
                                     threshold_doubt(status, rem, alpha), undetermined,
                                     one_kind_doubt(chosen, obs, current),
+                                    offset_doubt(rounds, chosen, len(obs), bic_margin),
                                     slow_doubt(slow),
                                     split_doubt(status, rem, _status_under(
                                         obs, base, current, in_model, final_noise, rem,
