@@ -86,10 +86,6 @@ def offset_gain(cov: np.ndarray, r: np.ndarray) -> float:
     return float((a @ r) ** 2 / (a @ one))
 
 
-def engine_cov(t: np.ndarray, cn: nz.ChannelNoise) -> np.ndarray:
-    return covariance(t, cn.white, cn.corr, cn.corr_s, drift=cn.drift)
-
-
 def two_parts(obs: pd.DataFrame, r: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Restricted-ML covariance with white, two Ornstein-Uhlenbeck parts (each between
     half an interval and the longest correlation the engine allows) and a drift."""
@@ -130,6 +126,7 @@ def run(per_ramp: int, cycles: int, draws: int) -> list[dict]:
     obs = series(per_ramp, cycles)
     t = obs["time_s"].to_numpy(float)
     B = systematic_basis(obs)
+    (one,) = nz._series(obs)  # the engine's covariance of a fitted noise: one.covariance
     rows = []
     for kind, levels in KINDS.items():
         true = covariance(t, **levels)
@@ -138,8 +135,8 @@ def run(per_ramp: int, cycles: int, draws: int) -> list[dict]:
             r = rig_noise(t, RigNoise(white=1.0, **levels), np.random.default_rng(seed))
             (cn,) = nz.fit_noise(obs, r, systematic=B).params.values()
             (cp,) = nz.fit_noise(obs, r).params.values()
-            gains["engine"].append(offset_gain(engine_cov(t, cn), r))
-            gains["plain"].append(offset_gain(engine_cov(t, cp), r))
+            gains["engine"].append(offset_gain(one.covariance(cn), r))
+            gains["plain"].append(offset_gain(one.covariance(cp), r))
             gains["two parts"].append(offset_gain(two_parts(obs, r, B), r))
             gains["true"].append(offset_gain(true, r))
         rows.append({"kind": kind, **{k: (float(np.mean(v)), float(np.mean(np.asarray(v)

@@ -140,6 +140,24 @@ def _cycled_obs(r: np.ndarray, per_ramp: int) -> pd.DataFrame:
     return obs
 
 
+def _offset_gain(cov: np.ndarray, r: np.ndarray) -> float:
+    """The gain of a constant column on ``r`` under the covariance ``cov`` (generalised
+    least squares): chi2 with one degree of freedom when ``cov`` is the noise's."""
+    import scipy.linalg as sl
+
+    ones = np.ones(len(r))
+    a = sl.cho_solve(sl.cho_factor(cov, lower=True), ones)
+    return float((a @ r) ** 2 / (a @ ones))
+
+
+def _engine_covariance(obs: pd.DataFrame, cn) -> np.ndarray:
+    """The covariance the engine's noise model ``cn`` gives the one series of ``obs``."""
+    from diagnosis.noise import _series
+
+    (series,) = _series(obs)
+    return series.covariance(cn)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_repeated_misfit_is_kept_out_of_the_noise(seed):
     """Residual = white noise (SD 1) + a smooth misfit repeated at all 6 cycles (a
@@ -750,8 +768,6 @@ def test_a_series_of_several_cycles_takes_a_wander_as_slow_as_a_cycle():
     covariance: chi2 with one degree of freedom, mean 1 (0.4-2.0 over the 12 draws;
     measured 1.1, and 1.4 under the true covariance). Held at half a ramp, as before
     open-world-33, the same draws give the offset a mean gain of 6.1."""
-    import scipy.linalg as sl
-
     from diagnosis.noise import cycle_duration
     from diagnosis.remaining import systematic_basis
 
@@ -759,13 +775,6 @@ def test_a_series_of_several_cycles_takes_a_wander_as_slow_as_a_cycle():
     t = np.arange(float(2 * per_ramp * cycles))
     lags = np.abs(t[:, None] - t[None, :])
     true_cov = 1.5**2 * np.exp(-lags / 15.0) + np.eye(len(t))
-    ones = np.ones(len(t))
-
-    def offset_gain(cov, r):
-        c = sl.cho_factor(cov, lower=True)
-        a = sl.cho_solve(c, ones)
-        return float((a @ r) ** 2 / (a @ ones))
-
     taus, gains, true_gains = [], [], []
     for seed in range(12):
         rng = np.random.default_rng(seed)
@@ -775,9 +784,8 @@ def test_a_series_of_several_cycles_takes_a_wander_as_slow_as_a_cycle():
         nm = fit_noise(obs, r, drift=False, systematic=systematic_basis(obs))
         (cn,) = nm.params.values()
         taus.append(cn.corr_s)
-        cov = cn.corr**2 * np.exp(-lags / cn.corr_s) + cn.white**2 * np.eye(len(t))
-        gains.append(offset_gain(cov, r))
-        true_gains.append(offset_gain(true_cov, r))
+        gains.append(_offset_gain(_engine_covariance(obs, cn), r))
+        true_gains.append(_offset_gain(true_cov, r))
     assert np.median(taus) > 5.0
     assert 0.4 < np.mean(gains) < 2.0
     assert 0.4 < np.mean(true_gains) < 2.0
@@ -808,19 +816,11 @@ def test_an_offset_on_two_short_cycles_is_tested_right_when_the_noise_has_the_mo
     degree of freedom (mean 1; over 40 draws measured 1.13, 1.05 under the true covariance).
     Where the noise is not of that shape the fitted model inflates the gain, and no
     noise model of this one series calibrates it (benchmarks/noise_calibration.py)."""
-    import scipy.linalg as sl
-
     from diagnosis.remaining import systematic_basis
 
     per_ramp, draws = 11, 40
     t = np.arange(float(4 * per_ramp))
     lags = np.abs(t[:, None] - t[None, :])
-    ones = np.ones(len(t))
-
-    def offset_gain(cov, r):
-        a = sl.cho_solve(sl.cho_factor(cov, lower=True), ones)
-        return float((a @ r) ** 2 / (a @ ones))
-
     true_cov = np.eye(len(t)) + 0.7**2 * np.exp(-lags / 1.4)
     gains, true_gains = [], []
     for seed in range(draws):
@@ -828,9 +828,7 @@ def test_an_offset_on_two_short_cycles_is_tested_right_when_the_noise_has_the_mo
                       np.random.default_rng(seed))
         obs = _cycled_obs(r, per_ramp)
         (cn,) = fit_noise(obs, r, systematic=systematic_basis(obs)).params.values()
-        cov = (cn.white**2 * np.eye(len(t)) + cn.corr**2 * np.exp(-lags / cn.corr_s)
-               + cn.drift**2 * np.outer(t, t))
-        gains.append(offset_gain(cov, r))
-        true_gains.append(offset_gain(true_cov, r))
+        gains.append(_offset_gain(_engine_covariance(obs, cn), r))
+        true_gains.append(_offset_gain(true_cov, r))
     assert 0.5 < np.mean(gains) < 1.6
     assert 0.5 < np.mean(true_gains) < 1.6
