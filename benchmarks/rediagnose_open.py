@@ -12,7 +12,10 @@ scores the stored and the new results of the same cases (``diagnosis.open_benchm
 and writes ``--out/compare.md`` with both summaries and one line per case.  ``--stated-white``: each
 diagnosis is given the white noise SD per channel that its generator drew (``diagnose
 --noise``), as a lab would state its instrument's; the other kinds of rig noise are still
-estimated.  ``--short-series N``: only the cases with a series too short to keep its
+estimated.  ``--stated-full``: each is given the whole noise its generator drew
+(``diagnosis.open_world.noise_statement``), as a lab that measured its rig would state it,
+and fits no noise: what the diagnosis does once the noise is not its to guess.
+``--short-series N``: only the cases with a series too short to keep its
 repeated-misfit columns and N more out of its noise model (open-world-24's change of what
 short series keep out can move no other case; N = 12 took 58, 50 and 63 cases of seeds
 1, 2 and 3).
@@ -34,6 +37,7 @@ from brain_fe.io import write_json_atomic, write_text_atomic
 from brain_fe.parallel import SharedCounter, dynamic_items
 from diagnosis.noise import MIN_REML_DOF
 from diagnosis.open_benchmark import _diagnose, _rms_over_rig_noise, score, summary_markdown
+from diagnosis.open_world import noise_statement
 from diagnosis.remaining import reproducible_basis
 from diagnosis.series import groups
 from recordings.observations import observations
@@ -67,6 +71,10 @@ def main() -> None:
     ap.add_argument("--stated-white", action="store_true",
                     help="give each diagnosis the white noise SD per channel its generator "
                     "drew, as a lab that knows its instrument states it (--noise)")
+    ap.add_argument("--stated-full", action="store_true",
+                    help="give each diagnosis the whole noise its generator drew (white, "
+                    "filter, wander, drift, rounding), as a lab that measured its rig "
+                    "states it (--noise JSON): no noise is fitted")
     ap.add_argument("--short-series", type=int, metavar="N", default=None,
                     help="only the cases with a series that keeps fewer than the noise "
                     "model's minimum degrees of freedom once its repeated-misfit columns "
@@ -96,7 +104,8 @@ def main() -> None:
         lab, obs = _case(src, name)
         t0 = time.perf_counter()
         stated = ({ch: float(n["white"]) for ch, n in lab["noise"].items()}
-                  if a.stated_white else None)
+                  if a.stated_white else noise_statement(lab["noise"]) if a.stated_full
+                  else None)
         res = _diagnose(obs, types.SimpleNamespace(**lab["specimen"]), 1, name, stated)
         res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, lab["noise"],
                                                                lab.get("noise_rms"))

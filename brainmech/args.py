@@ -121,11 +121,16 @@ def channel_noise(text: str) -> dict[str, float]:
 def noise_option(text: str) -> dict:
     """``--noise``: ``CH=SD,...`` for every specimen (see :func:`channel_noise`), or a
     JSON file ``{specimen: {CH: SD}}`` such as the ``noise.json`` that ``brainmech
-    import`` writes (each specimen its own measured noise)."""
+    import`` writes (each specimen its own measured noise; the specimen ``"*"``: every
+    specimen not listed).  In the file a channel's value may also state its whole noise,
+    ``{"white": SD, "correlated": SD, "correlation_time_s": s, "drift_per_s": rate,
+    "more_correlated": [[SD, s], ...]}`` (:func:`diagnosis.noise.statement`), and then
+    nothing of it is fitted."""
     import json
     from pathlib import Path
 
     from brain_fe.vocabulary import CHANNELS
+    from diagnosis.noise import statement
 
     if "=" in text:
         return channel_noise(text)
@@ -146,10 +151,13 @@ def noise_option(text: str) -> dict:
                 f"{text}: specimen {spec!r}: expected {{channel: SD}}, got {chans!r}")
         out[str(spec)] = {}
         for ch, sd in chans.items():
-            ok = isinstance(sd, (int, float)) and not isinstance(sd, bool)
-            if ch not in CHANNELS or not ok or not math.isfinite(sd) or sd <= 0:
+            if ch not in CHANNELS:
                 raise argparse.ArgumentTypeError(
-                    f"{text}: specimen {spec!r}, channel {ch!r}: expected one of "
-                    f"{', '.join(CHANNELS)} with a positive SD, got {sd!r}")
-            out[str(spec)][ch] = float(sd)
+                    f"{text}: specimen {spec!r}: unknown channel {ch!r} (expected one of "
+                    f"{', '.join(CHANNELS)})")
+            try:
+                out[str(spec)][ch] = statement(sd)
+            except ValueError as exc:
+                raise argparse.ArgumentTypeError(
+                    f"{text}: specimen {spec!r}, channel {ch!r}: {exc}") from None
     return {"by_specimen": out}

@@ -351,10 +351,12 @@ def _done(folder: Path) -> Path | None:
 def noise_of(noise: dict | None, specimen: str) -> dict | None:
     """The stated noise of ``specimen``: ``noise`` is None (estimate it), ``{channel: SD}``
     for every specimen, or ``{"by_specimen": {specimen: {channel: SD}}}`` (a specimen it
-    does not list has its noise estimated, and the log says so)."""
+    does not list takes the entry ``"*"``, else has its noise estimated, and the log says
+    so).  A channel's value may state its whole noise (:func:`diagnosis.noise.statement`)."""
     if not noise or "by_specimen" not in noise:
         return noise or None
-    mine = noise["by_specimen"].get(str(specimen))
+    listed = noise["by_specimen"]
+    mine = listed.get(str(specimen), listed.get("*"))
     if mine is None:
         log.warning("%s: no stated noise for this specimen; estimated from its recordings",
                     specimen)

@@ -53,7 +53,7 @@ from . import locate as loc
 from .drift import drift_model
 from .effects import BASE_NAMES, check_effects, library, parameter_names, separating_test
 from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
-from .noise import NoiseModel, estimate_noise, fit_noise
+from .noise import NoiseModel, estimate_noise, fit_noise, stated_sd
 from .notes import (
     contact_event_notes,
     contact_notes,
@@ -265,8 +265,9 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
              noise: dict | None = None, max_effects: int = MAX_EFFECTS) -> Diagnosis:
     """Diagnose one specimen.  ``sim``/``fine_sim``: simulators on the working mesh and on
     the next finer one (None: no discretisation correction, e.g. analytical models);
-    ``noise``: the stated white noise per channel ({"stress": SD in kPa, ...}), else
-    estimated.  With ``comm`` (MPI) the work of every stage is shared among the ranks."""
+    ``noise``: the stated noise per channel ({"stress": white SD in kPa, ...}, or a
+    channel's whole noise, :func:`diagnosis.noise.statement`), else estimated.  With
+    ``comm`` (MPI) the work of every stage is shared among the ranks."""
     t0 = time.perf_counter()
     obs = obs.reset_index(drop=True)
     check_effects(effects, sim.kind)
@@ -783,8 +784,8 @@ def _base(sim, fine_sim, obs, stated):
                 "reference_refinement": fine_sim.refinement, "richardson_factor": factor}
     sigma = estimate_noise(obs, base.residual(obs))
     if stated:
-        sigma = np.array([stated.get(c, s) for c, s in zip(obs["channel"], sigma,
-                                                             strict=True)], dtype=float)
+        sigma = np.array([stated_sd(stated[c]) if c in stated else s
+                          for c, s in zip(obs["channel"], sigma, strict=True)], dtype=float)
     base = fit(sim, obs, sigma, base.values, names, max_nfev=20)
     if fine_sim is not None:
         rel = np.abs(sim.correction) / sigma

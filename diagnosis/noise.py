@@ -216,16 +216,77 @@ def lrt_p_value(lrt: float, k: int, nu: float = math.inf) -> float:
 class ChannelNoise:
     """Noise of one channel: white SD, a correlated (Ornstein-Uhlenbeck) component of SD
     ``corr`` and correlation time ``corr_s`` [s], and a drift from the tare at a random rate
-    of SD ``drift`` [unit/s].  Units: the channel's."""
+    of SD ``drift`` [unit/s].  Units: the channel's.  ``more``: further correlated
+    components, ((SD, correlation time [s]), ...), which only a stated noise has (a rig
+    measured with both a low-pass filter and a slow wander, :func:`statement`); the
+    diagnosis fits one."""
 
     white: float
     corr: float = 0.0
     corr_s: float = 1.0
     drift: float = 0.0
+    more: tuple = ()
 
     @property
     def sd(self) -> float:
-        return math.hypot(self.white, self.corr)
+        return math.sqrt(self.white**2 + self.corr**2 + sum(c * c for c, _ in self.more))
+
+    def correlated(self, lags: np.ndarray) -> np.ndarray:
+        """Covariance of the correlated components at the time lags ``lags`` [s]."""
+        out = self.corr**2 * np.exp(-lags / self.corr_s)
+        for c, tau in self.more:
+            out = out + c * c * np.exp(-lags / tau)
+        return out
+
+
+# The keys of a noise stated in full (``--noise`` JSON, :func:`statement`); the first four
+# are those of a diagnosis.json's ``noise_model``, so a model fitted to a baseline recording
+# of the rig can be stated as it stands
+STATEMENT_KEYS = ("white", "correlated", "correlation_time_s", "drift_per_s",
+                  "more_correlated")
+
+
+def statement(value) -> float | ChannelNoise:
+    """A stated noise of one channel: a positive number is its white SD (the slow part is
+    still fitted to each specimen's residual); a mapping states it in full and nothing is
+    fitted: ``{"white": SD, "correlated": SD, "correlation_time_s": s, "drift_per_s": rate,
+    "more_correlated": [[SD, s], ...]}`` (white required, the rest 0 when left out).
+    Raises ValueError naming what is wrong."""
+    def number(x, what, positive=False) -> float:
+        ok = isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+        if not ok or x < 0 or (positive and x == 0):
+            raise ValueError(f"{what} must be a {'positive' if positive else 'non-negative'}"
+                             f" number, got {x!r}")
+        return float(x)
+
+    if not isinstance(value, dict):
+        return number(value, "the SD", positive=True)
+    unknown = sorted(set(value) - set(STATEMENT_KEYS))
+    if unknown:
+        raise ValueError(f"unknown key {unknown[0]!r} (expected {', '.join(STATEMENT_KEYS)})")
+    if "white" not in value:
+        raise ValueError("a noise stated in full needs its 'white' SD")
+    more = value.get("more_correlated", [])
+    if not isinstance(more, list) or not all(isinstance(m, list) and len(m) == 2
+                                             for m in more):
+        raise ValueError(f"more_correlated must be a list of [SD, seconds], got {more!r}")
+    return ChannelNoise(
+        white=number(value["white"], "white", positive=True),
+        corr=number(value.get("correlated", 0.0), "correlated"),
+        corr_s=number(value.get("correlation_time_s", 1.0), "correlation_time_s", True),
+        drift=number(value.get("drift_per_s", 0.0), "drift_per_s"),
+        more=tuple((number(c, "a more_correlated SD"), number(s, "a more_correlated time",
+                                                              True)) for c, s in more))
+
+
+def stated_white(value) -> float:
+    """The white SD of a stated noise (:func:`statement`)."""
+    return value.white if isinstance(value, ChannelNoise) else float(value)
+
+
+def stated_sd(value) -> float:
+    """The stationary SD of a stated noise (white alone when only it is stated)."""
+    return value.sd if isinstance(value, ChannelNoise) else float(value)
 
 
 class NoiseModel:
@@ -237,11 +298,13 @@ class NoiseModel:
 
     def __init__(self, obs: pd.DataFrame, series: dict[tuple, ChannelNoise],
                  dof: np.ndarray | None = None, rivals: dict | None = None,
-                 held: frozenset = frozenset()):
+                 held: frozenset = frozenset(), known: frozenset = frozenset()):
         self.obs = obs
         self.params = dict(series)
         # the series whose white SD was stated (held, not estimated from the residual)
-        self.held = frozenset(held)
+        self.held = frozenset(held) | frozenset(known)
+        # the series whose noise was stated in full (nothing estimated: nu infinite)
+        self.known = frozenset(known)
         # (curve, channel) -> (ChannelNoise, its -2 log L above the chosen one): another
         # optimum of the likelihood that the recordings do not rule out (within
         # ``NOISE_TIE``) with a slow part ``RIVAL_FACTOR`` times larger or smaller
@@ -275,9 +338,9 @@ class NoiseModel:
     def _level_dof(self) -> np.ndarray:
         """Per row: its series' nu_s / f_s^2 (:meth:`nu_level`)."""
         span = self._spans()
-        share = {}
+        share = {key: 0.0 for key in self.known}
         for key, cn in self.params.items():
-            if key in self.held:
+            if key in self.held and key not in self.known:
                 slow2 = _slow(cn, span.get(key, 0.0)) ** 2
                 total = cn.white**2 + slow2
                 share[key] = slow2 / total if total > 0 else 0.0
@@ -332,7 +395,7 @@ class NoiseModel:
             return None
         return NoiseModel(self.obs, {**self.params,
                                      **{k: n for k, (n, _) in self.rivals.items()}},
-                          self.dof, held=self.held)
+                          self.dof, held=self.held, known=self.known)
 
     def describe_rivals(self) -> dict:
         """Per series with a rival: the -2 log L between the two and both slow SDs."""
@@ -349,7 +412,10 @@ class NoiseModel:
         span = self._spans()
         return {f"{c}/{ch}": {"white": n.white, "correlated": n.corr,
                               "correlation_time_s": n.corr_s, "drift_per_s": n.drift,
-                              "slow_sd": _slow(n, span.get((c, ch), 0.0))}
+                              **({"more_correlated": [list(m) for m in n.more]}
+                                 if n.more else {}),
+                              "slow_sd": _slow(n, span.get((c, ch), 0.0)),
+                              **({"stated": "in full"} if (c, ch) in self.known else {})}
                 for (c, ch), n in (self.params if params is None else params).items()}
 
 
@@ -393,8 +459,7 @@ class _Series:
         return float(value)
 
     def covariance(self, ch: ChannelNoise) -> np.ndarray:
-        S = ch.corr**2 * np.exp(-self.lags / ch.corr_s) + ch.drift**2 * np.outer(
-            self.ramp, self.ramp)
+        S = ch.correlated(self.lags) + ch.drift**2 * np.outer(self.ramp, self.ramp)
         S[np.diag_indices_from(S)] += ch.white**2 * (1.0 + 1e-12)
         return S
 
@@ -480,9 +545,10 @@ def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
     """Maximum-likelihood noise model of ``residual`` (recorded minus model), per series
     (curve and channel: the noise of one channel may differ between tests).
 
-    ``stated``: {channel: white SD} known from the instrument (then held for every series of
-    that channel); ``correlated`` / ``drift``: include those components.  Starts from the
-    robust second-difference estimate.
+    ``stated``: {channel: white SD, or the whole noise as a :class:`ChannelNoise`} known
+    from the instrument (:func:`statement`; held for every series of that channel, and a
+    noise stated in full is not fitted at all); ``correlated`` / ``drift``: include those
+    components.  Starts from the robust second-difference estimate.
 
     ``systematic``: columns (n x p) spanning misfits that are *not* noise (e.g. a misfit
     repeated at every cycle, :func:`diagnosis.remaining.systematic_basis`).  The noise is
@@ -505,11 +571,17 @@ def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
     dt, ramp = time_scales(obs)
     sd0 = estimate_noise(obs, r)
     params, rivals = {}, {}
+    stated = stated or {}
+    known = {key for key in dict.fromkeys(s.key for s in series)
+             if isinstance(stated.get(key[1]), ChannelNoise)}
     for key in dict.fromkeys(s.key for s in series):
+        if key in known:
+            params[key] = stated[key[1]]
+            continue
         mine = [s for s in series if s.key == key]
         rows = np.concatenate([s.rows for s in mine])
         w0 = float(np.median(sd0[rows]))
-        fixed = None if not stated or key[1] not in stated else float(stated[key[1]])
+        fixed = None if key[1] not in stated else stated_white(stated[key[1]])
         cycles = [cycle_duration(obs, s.rows) for s in mine]
         cycle_s = min(cycles) if all(c is not None for c in cycles) else None
         params[key], rival = _fit_channel(mine, r, w0, fixed, dt, ramp, correlated, drift,
@@ -518,14 +590,15 @@ def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
             rivals[key] = rival
     dof = np.empty(len(r))
     for s in series:
-        dof[s.rows] = len(s.rows) - (0 if s.basis is None else s.basis.shape[1])
-    held = {key for key in params if stated and key[1] in stated}
-    return NoiseModel(obs, params, dof, rivals, held=frozenset(held))
+        dof[s.rows] = np.inf if s.key in known else (
+            len(s.rows) - (0 if s.basis is None else s.basis.shape[1]))
+    held = {key for key in params if key[1] in stated}
+    return NoiseModel(obs, params, dof, rivals, held=frozenset(held), known=frozenset(known))
 
 
 def _slow(ch: ChannelNoise, span: float) -> float:
     """SD of the slow part (wander and drift) over a series of RMS time ``span``."""
-    return math.hypot(ch.corr, ch.drift * span)
+    return math.sqrt(ch.corr**2 + sum(c * c for c, _ in ch.more) + (ch.drift * span) ** 2)
 
 
 def _fit_channel(mine, r, w0, fixed_white, dt, ramp, correlated, drift, cycle_s=None

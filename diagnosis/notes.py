@@ -27,7 +27,7 @@ import numpy as np
 from brain_fe.parameters import Parameters
 
 from .fitting import Fit
-from .noise import NoiseModel, longest_correlation_s, time_scales
+from .noise import ChannelNoise, NoiseModel, longest_correlation_s, time_scales
 from .remaining import shear_rows
 
 log = logging.getLogger(__name__)
@@ -46,6 +46,8 @@ def wander_doubt(status: str, rem: dict, nm: NoiseModel, stated: dict | None) ->
     loud = []
     for k, v in nm.describe().items():
         sd = stated.get(k.rsplit("/", 1)[1])
+        if isinstance(sd, ChannelNoise):  # its slow part is stated too, not fitted
+            continue
         if sd is not None and v["slow_sd"] > WANDER_FACTOR * sd:
             loud.append((k, v["slow_sd"], sd))
     if not loud:

@@ -86,8 +86,9 @@ def _case(i: int, seed: int, models: dict):
 
 
 def _diagnose(obs, spec, refinement, name, noise: dict | None = None) -> dict:
-    """The diagnosis of one case, blind; ``noise``: a stated white SD per channel (as a lab
-    that knows its instrument would give with ``--noise``), else estimated."""
+    """The diagnosis of one case, blind; ``noise``: a stated noise per channel (its white
+    SD, or all of it, as a lab that knows its instrument would give with ``--noise``),
+    else estimated."""
     sim = FESimulator(obs, spec.radius_mm, spec.height_mm, refinement=refinement)
     fine = FESimulator(obs, spec.radius_mm, spec.height_mm, refinement=refinement + 1)
     try:

@@ -74,6 +74,7 @@ from simulators.fe import FESimulator
 from .benchmark import MAX_SIZE, effect_values
 from .effects import library, parameter_names
 from .fitting import fit
+from .noise import ChannelNoise
 from .selection import Union
 
 log = logging.getLogger(__name__)
@@ -336,6 +337,21 @@ def draw_noise(clean: pd.DataFrame, kinds: tuple[str, ...], rng, spec: Specimen
 def noise_sd(noise: dict[str, RigNoise]) -> dict[str, float]:
     """Per channel: the SD of the stationary noise (quantisation as uniform)."""
     return {ch: math.sqrt(n.stationary_sd() ** 2 + n.quantum**2 / 12) for ch, n in noise.items()}
+
+
+def noise_statement(noise: dict[str, RigNoise]) -> dict[str, ChannelNoise]:
+    """Per channel: the rig's whole noise as a lab that measured its rig would state it
+    (``diagnose --noise`` JSON, :func:`diagnosis.noise.statement`): the white part with the
+    rounding error (uniform, ``quantum^2 / 12``), the filter and the wander as two
+    correlated parts, the drift.  The diagnosis then fits no noise."""
+    out = {}
+    for ch, n in noise.items():
+        n = n if isinstance(n, RigNoise) else RigNoise(**n)
+        parts = [(c, s) for c, s in ((n.filtered, n.filter_s), (n.wander, n.wander_s)) if c]
+        (corr, corr_s), *more = parts or [(0.0, 1.0)]
+        out[ch] = ChannelNoise(white=math.sqrt(n.white**2 + n.quantum**2 / 12), corr=corr,
+                               corr_s=corr_s, drift=n.drift, more=tuple(more))
+    return out
 
 
 # --------------------------------------------------------------------------- a case

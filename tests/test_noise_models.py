@@ -121,7 +121,7 @@ def test_noise_file_option_gives_each_specimen_its_own(tmp_path):
     assert noise_of(noise_option("stress=0.1"), "c") == {"stress": 0.1}
     assert noise_of(None, "c") is None
     for text, why in ((json.dumps({"a": {"force": 1}}), "channel 'force'"),
-                      (json.dumps({"a": {"stress": -1}}), "positive SD"),
+                      (json.dumps({"a": {"stress": -1}}), "SD must be a positive number"),
                       ("[1, 2]", "expected {specimen"), ("{", "not a JSON file")):
         f.write_text(text)
         with pytest.raises(argparse.ArgumentTypeError, match=why) as exc:
