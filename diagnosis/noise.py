@@ -244,6 +244,9 @@ class ChannelNoise:
 # of the rig can be stated as it stands
 STATEMENT_KEYS = ("white", "correlated", "correlation_time_s", "drift_per_s",
                   "more_correlated")
+# what ``NoiseModel.describe`` adds, derived from the rest: read past, so that a described
+# model states itself
+DESCRIBED_KEYS = ("slow_sd", "stated")
 
 
 def statement(value) -> float | ChannelNoise:
@@ -261,7 +264,7 @@ def statement(value) -> float | ChannelNoise:
 
     if not isinstance(value, dict):
         return number(value, "the SD", positive=True)
-    unknown = sorted(set(value) - set(STATEMENT_KEYS))
+    unknown = sorted(set(value) - set(STATEMENT_KEYS) - set(DESCRIBED_KEYS))
     if unknown:
         raise ValueError(f"unknown key {unknown[0]!r} (expected {', '.join(STATEMENT_KEYS)})")
     if "white" not in value:

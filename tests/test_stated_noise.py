@@ -45,6 +45,7 @@ def test_a_noise_stated_in_full_is_held_whole():
     assert nm.rival() is None
     (d,) = nm.describe().values()
     assert d["stated"] == "in full" and d["more_correlated"] == [[0.4, 25.0]]
+    assert statement(d) == cn  # a diagnosis.json's noise_model states itself
 
 
 def test_the_stated_covariance_is_the_one_the_rig_draws():
