@@ -228,8 +228,13 @@ class ChannelNoise:
     more: tuple = ()
 
     @property
+    def correlated_sd(self) -> float:
+        """Stationary SD of the correlated components together."""
+        return math.hypot(self.corr, *(c for c, _ in self.more))
+
+    @property
     def sd(self) -> float:
-        return math.sqrt(self.white**2 + self.corr**2 + sum(c * c for c, _ in self.more))
+        return math.hypot(self.white, self.correlated_sd)
 
     def correlated(self, lags: np.ndarray) -> np.ndarray:
         """Covariance of the correlated components at the time lags ``lags`` [s]."""
@@ -280,11 +285,6 @@ def statement(value) -> float | ChannelNoise:
         drift=number(value.get("drift_per_s", 0.0), "drift_per_s"),
         more=tuple((number(c, "a more_correlated SD"), number(s, "a more_correlated time",
                                                               True)) for c, s in more))
-
-
-def stated_white(value) -> float:
-    """The white SD of a stated noise (:func:`statement`)."""
-    return value.white if isinstance(value, ChannelNoise) else float(value)
 
 
 def stated_sd(value) -> float:
@@ -584,7 +584,7 @@ def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
         mine = [s for s in series if s.key == key]
         rows = np.concatenate([s.rows for s in mine])
         w0 = float(np.median(sd0[rows]))
-        fixed = None if key[1] not in stated else stated_white(stated[key[1]])
+        fixed = None if key[1] not in stated else float(stated[key[1]])
         cycles = [cycle_duration(obs, s.rows) for s in mine]
         cycle_s = min(cycles) if all(c is not None for c in cycles) else None
         params[key], rival = _fit_channel(mine, r, w0, fixed, dt, ramp, correlated, drift,
@@ -601,7 +601,7 @@ def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
 
 def _slow(ch: ChannelNoise, span: float) -> float:
     """SD of the slow part (wander and drift) over a series of RMS time ``span``."""
-    return math.sqrt(ch.corr**2 + sum(c * c for c, _ in ch.more) + (ch.drift * span) ** 2)
+    return math.hypot(ch.correlated_sd, ch.drift * span)
 
 
 def _fit_channel(mine, r, w0, fixed_white, dt, ramp, correlated, drift, cycle_s=None
