@@ -95,7 +95,6 @@ from .selection import (
     MODEL_FAILURES,
     Context,
     Union,
-    chi2_needed,
     compare,
     compatible,
     run_round,
@@ -106,7 +105,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.12-open-world-34"
+ENGINE_VERSION = "2026.12-open-world-35"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 RELAXATION = "viscoelastic"  # the effect whose relaxation time :func:`slow_relaxation` reads
@@ -354,7 +353,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
             without = _without(ctx, base, current, in_model, RELAXATION)
         slow["without"] = None if without is None else without.effect  # None: its fit failed
         if without is not None:
-            slow.update(_gain_under_noise_of(obs, without, current, noise, alpha, bic_margin))
+            slow.update(_gain_under_noise_of(ctx, without, current, noise))
         notes.append(f"the closest model holds a relaxation slower than the longest test "
                      f"(tau {slow['tau_s']:.3g} s, the test {slow['longest_test_s']:.3g} s): "
                      "over the test it is a slow change of the stress with time, which a "
@@ -585,19 +584,18 @@ def _without(ctx: Context, base: Fit, current: Fit, in_model: list, effect: str)
         return None
 
 
-def _gain_under_noise_of(obs, without: Fit, current: Fit, stated, alpha: float = ALPHA,
-                         bic_margin: float = BIC_MARGIN) -> dict:
+def _gain_under_noise_of(ctx: Context, without: Fit, current: Fit, stated) -> dict:
     """``current``'s gain in -2 log L over ``without`` (its model less some effects) under
     the noise model of ``without``'s residual (:func:`_noise_of`), and the gain its extra
     parameters need there as one candidate (:func:`diagnosis.selection.chi2_needed`).  The
     selection judges an effect under the noise its own fit leaves; an effect that takes up
     a slow part of the noise (the rig's drift) empties that noise of it, and only the noise
     of the fit without the effect shows it."""
-    nb = _noise_of(obs, without, stated)
-    z0, z1 = nb.whiten(without.residual(obs)), nb.whiten(current.residual(obs))
+    nb = _noise_of(ctx.obs, without, stated)
+    ctx.judge_all(nb, [without, current])
+    z0, z1 = ctx.judged(nb, without), ctx.judged(nb, current)
     return {"gain_under_noise_without": float(z0 @ z0 - z1 @ z1),
-            "needed": chi2_needed(current.k - without.k, 1, len(obs), alpha, bic_margin,
-                                  nb.nu_of_gain(z0**2 - z1**2))}
+            "needed": ctx.needed(current.k - without.k, 1, ctx.nu(nb, without, current))}
 
 
 def _what_remains(obs, current: Fit, stated, alpha, bic_margin):

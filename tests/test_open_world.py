@@ -346,12 +346,20 @@ def test_an_effect_that_takes_the_rigs_drift_gains_nothing_under_the_base_noise(
     open-world-33, whose noise model may take a wander as slow as a cycle: one white draw
     gets a wander of SD 0.42 at 28 s, and its gain falls from 131 to 49), above twice the
     19.6 that 2 parameters need among 120 points (2 log 120 + 10).  Under the noise of the
-    base fit's residual, which has the drift back, it gains at most 1.5 of it."""
+    base fit's residual, which has the drift back, it gains at most 1.5 of it.  (The
+    model refuses every point, so neither side takes its GLS step: the gains are the
+    fits' own.)"""
     from test_noise_models import _cycled_obs
 
     from brain_fe.parameters import Param
     from diagnosis.engine import _gain_under_noise_of, _noise_of
     from diagnosis.fitting import Fit
+    from diagnosis.selection import Context
+    from diagnosis.sharing import share_with
+
+    class Refuses:
+        def predict(self, values, wrt=()):
+            raise RuntimeError("Newton did not converge")
 
     per_ramp, cycles = 20, 3
     n = 2 * cycles * per_ramp
@@ -361,13 +369,15 @@ def test_an_effect_that_takes_the_rigs_drift_gains_nothing_under_the_base_noise(
     drift = 3.0 * t / np.ptp(t)
     obs = _cycled_obs(np.zeros(n), per_ramp)
     names = [Param("mu", 0), Param("alpha", 0)]
+    ctx = Context(Refuses(), obs, np.ones(n), {}, names, 1e-3, 10.0, 20, share_with(None))
+    at = {q: 1.0 for q in names}
     J = np.c_[shape, shape**2]
     for seed in range(8):
         white = np.random.default_rng(seed).normal(0.0, 1.0, n)
-        base = Fit("base", names, {}, 0.0, n, drift + white, None, 0, jacobian=J)
-        slow = Fit("viscoelastic", [*names, Param("beta", 0), Param("log10_tau", 0)], {},
+        base = Fit("base", names, at, 0.0, n, drift + white, None, 0, jacobian=J)
+        slow = Fit("viscoelastic", [*names, Param("beta", 0), Param("log10_tau", 0)], at,
                    0.0, n, white, None, 0, jacobian=np.c_[J, drift, drift**2])
-        judged = _gain_under_noise_of(obs, base, slow, None)
+        judged = _gain_under_noise_of(ctx, base, slow, None)
         assert judged["needed"] == pytest.approx(2 * np.log(n) + 10.0)
         assert judged["gain_under_noise_without"] < 2.0 < judged["needed"]
         own = _noise_of(obs, slow, None)
@@ -535,7 +545,8 @@ def test_a_candidate_that_cannot_be_scored_is_listed():
 
     from diagnosis.selection import Round, compare
 
-    ctx = SimpleNamespace(chi2=lambda noise, f: 100.0, obs=[0] * 10, lib={})
+    ctx = SimpleNamespace(chi2=lambda noise, f: 100.0, obs=[0] * 10, lib={},
+                          judge_all=lambda noise, fits: None)
     rnd = Round([], {}, {}, [], unscored=["viscoelastic"])
     known = SimpleNamespace(nu_level=lambda: float("inf"))  # a noise model, known exactly
     (row,) = compare(ctx, rnd, SimpleNamespace(k=3), 6, known)
