@@ -17,7 +17,9 @@
    would separate them; before such a near tie is decided, every fit of it that the
    ranking budget stopped short is run to the end.
 3. **Locate and check**: the base residual and the final residual, whitened by the final
-   noise model, are located along the protocol's axes (:mod:`diagnosis.locate`); what the
+   noise model (each at its evaluated GLS step under it, as every comparison reads a fit:
+   :func:`diagnosis.selection.gls_step`), are located along the protocol's axes
+   (:mod:`diagnosis.locate`); what the
    final model leaves systematic (located, or reproducible across repetitions:
    :mod:`diagnosis.remaining`) decides the status.
 4. **What would show**: how large each candidate not named would have to be to earn its
@@ -105,7 +107,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.12-open-world-35"
+ENGINE_VERSION = "2026.12-open-world-36"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 RELAXATION = "viscoelastic"  # the effect whose relaxation time :func:`slow_relaxation` reads
@@ -329,8 +331,8 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         finally:  # every round, the one that stops too
             entry["whole_round"] = round(time.perf_counter() - t_round, 2)
     t_end = time.perf_counter()
-    final_noise, rem = _what_remains(obs, current, noise, alpha, bic_margin)
-    located = loc.locate(obs, final_noise.whiten(base.residual(obs)), 1.0,
+    final_noise, rem = _what_remains(ctx, current, noise)
+    located = loc.locate(obs, ctx.judged(final_noise, base), 1.0,
                           sigma_dof=final_noise.dof)
     in_model = list(chosen)  # the effects of ``current``, named or not
     (status, chosen, tried), (rms_base, rms_final) = _status_under(
@@ -384,7 +386,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                          f"library's best model: {rms_final:.2f})")
     doubt = wander_doubt(status, rem, final_noise, noise)
     undetermined, rivals = noise_doubt(rounds, status, chosen, _rival_outcome(
-        obs, base, current, in_model, final_noise, alpha, bic_margin))
+        ctx, base, current, in_model, final_noise))
     doubt = "; ".join(filter(None, [doubt, slowest_wander_doubt(status, rem, final_noise),
                                     threshold_doubt(status, rem, alpha), undetermined,
                                     one_kind_doubt(chosen, obs, current),
@@ -598,16 +600,20 @@ def _gain_under_noise_of(ctx: Context, without: Fit, current: Fit, stated) -> di
             "needed": ctx.needed(current.k - without.k, 1, ctx.nu(nb, without, current))}
 
 
-def _what_remains(obs, current: Fit, stated, alpha, bic_margin):
+def _what_remains(ctx: Context, current: Fit, stated):
     """The noise model of ``current``'s residual and what that model leaves systematic."""
-    nm = _noise_of(obs, current, stated)
-    return nm, _remains_under(obs, current, nm, alpha, bic_margin)
+    nm = _noise_of(ctx.obs, current, stated)
+    return nm, _remains_under(ctx, current, nm)
 
 
-def _remains_under(obs, current: Fit, nm: NoiseModel, alpha, bic_margin) -> dict:
-    """What ``current`` leaves systematic under the noise model ``nm``."""
-    return remaining(obs, current.residual(obs), nm, alpha=alpha, bic_margin=bic_margin,
-                     prediction=current.prediction, jacobian=current.jacobian,
+def _remains_under(ctx: Context, current: Fit, nm: NoiseModel) -> dict:
+    """What ``current`` leaves systematic under the noise model ``nm``, read where every
+    comparison reads it: at its evaluated GLS step under ``nm`` (:meth:`Context.judged`),
+    so that what the base's own parameters would take in that metric is not called a
+    misfit."""
+    y = ctx.judged_prediction(nm, current)
+    return remaining(ctx.obs, y - ctx.obs["value"].to_numpy(float), nm, alpha=ctx.alpha,
+                     bic_margin=ctx.bic_margin, prediction=y, jacobian=current.jacobian,
                      names=current.names)
 
 
@@ -681,15 +687,15 @@ def _judge(ctx: Context, rnd, current: Fit, m: int, stated) -> list:
     return sig
 
 
-def _rival_outcome(obs, base: Fit, current: Fit, in_model: list, nm: NoiseModel, alpha,
-                   bic_margin) -> dict:
+def _rival_outcome(ctx: Context, base: Fit, current: Fit, in_model: list,
+                   nm: NoiseModel) -> dict:
     """The status and named effects of the final model under ``nm``'s rival noise (the
     other optimum the recordings do not rule out), or {} when the noise is determined."""
     rival = nm.rival()
     if rival is None:
         return {}
-    rem = _remains_under(obs, current, rival, alpha, bic_margin)
-    (status, named, _), _ = _status_under(obs, base, current, in_model, rival, rem)
+    rem = _remains_under(ctx, current, rival)
+    (status, named, _), _ = _status_under(ctx.obs, base, current, in_model, rival, rem)
     return {"series": nm.describe_rivals(), "status": status, "effects": sorted(named)}
 
 

@@ -84,29 +84,40 @@ class Context:
     share: object  # share(items, work, cost) -> results (MPI-aware)
     stated: dict | None = None
     errors: list = field(default_factory=list)  # internal errors met (the same on every rank)
-    # (fit, noise) -> its judged residual (:meth:`judged`); the objects are held with it
+    # (fit, noise) -> (fit, noise, prediction, whitened residual) of :meth:`judged`; the
+    # objects are held with it
     _judged: dict = field(default_factory=dict, repr=False)
 
-    def judged(self, noise, f: Fit) -> np.ndarray:
-        """``f``'s whitened residual under ``noise`` where every comparison reads it: at
-        the better of ``f`` and its base parameters' step of generalised least squares
-        under ``noise``, evaluated (:func:`gls_step`).  Computed once per pair."""
+    def _keep(self, noise, f: Fit, y: np.ndarray) -> tuple:
+        z = noise.whiten(np.asarray(y, float) - self.obs["value"].to_numpy(float))
+        self._judged[(id(f), id(noise))] = hit = (f, noise, y, z)
+        return hit
+
+    def _hit(self, noise, f: Fit) -> tuple:
         hit = self._judged.get((id(f), id(noise)))
-        if hit is None:
-            hit = self._judged[(id(f), id(noise))] = (f, noise, gls_step(self, noise, f))
-        return hit[2]
+        return hit if hit is not None else self._keep(noise, f, gls_step(self, noise, f))
+
+    def judged(self, noise, f: Fit) -> np.ndarray:
+        """``f``'s whitened residual under ``noise`` where every comparison and test reads
+        it: at the better of ``f`` and its base parameters' step of generalised least
+        squares under ``noise``, evaluated (:func:`gls_step`).  Computed once per pair."""
+        return self._hit(noise, f)[3]
+
+    def judged_prediction(self, noise, f: Fit) -> np.ndarray:
+        """The prediction :meth:`judged` reads ``f`` at (``f.prediction`` or its step)."""
+        return self._hit(noise, f)[2]
 
     def judge_all(self, noise, fits) -> None:
         """:meth:`judged` for several fits at once, their steps shared among the ranks
         (not inside :func:`diagnosis.sharing.sharing`, whose solves are collective)."""
         todo = list({id(f): f for f in fits
                      if (id(f), id(noise)) not in self._judged}.values())
-        zs = self.share(todo, lambda f: gls_step(self, noise, f),
+        ys = self.share(todo, lambda f: gls_step(self, noise, f),
                         lambda f: HISTORY_COST if any(e in f.effect for e in HISTORY)
                         else 1.0)
-        for f, z in zip(todo, zs, strict=True):
-            if z is not None:  # an internal error: left to :meth:`judged`
-                self._judged[(id(f), id(noise))] = (f, noise, z)
+        for f, y in zip(todo, ys, strict=True):
+            if y is not None:  # an internal error: left to :meth:`judged`
+                self._keep(noise, f, y)
 
     def chi2(self, noise, f: Fit) -> float:
         z = self.judged(noise, f)
@@ -134,10 +145,10 @@ GLS_STEPS = (1.0, 0.5)
 
 
 def gls_step(ctx: Context, noise, f: Fit) -> np.ndarray:
-    """``f``'s whitened residual under ``noise`` at the better of ``f`` and a step of its
+    """The prediction at the better (in z.z under ``noise``) of ``f`` and a step of its
     base parameters (``ctx.base_names``) toward their optimum under ``noise``: the
     Gauss-Newton step of generalised least squares, within the bounds, evaluated by one
-    solve (halved once if it does not lower z.z); ``f`` itself where no step does.
+    solve (halved once if it does not lower z.z); ``f.prediction`` where no step does.
 
     The fits weigh each row by its SD alone (diagonal: :func:`diagnosis.fitting.fit`);
     the comparisons whiten by the whole noise model, correlated in time.  A fit is then
@@ -154,16 +165,16 @@ def gls_step(ctx: Context, noise, f: Fit) -> np.ndarray:
     z = noise.whiten(f.residual(ctx.obs))
     cols = [i for i, q in enumerate(f.names) if q in set(ctx.base_names)]
     if f.jacobian is None or not cols or not np.isfinite(z).all():
-        return z
+        return f.prediction
     J = np.asarray(f.jacobian, float)[:, cols]
     if not np.isfinite(J).all():
-        return z
+        return f.prediction
     names = [f.names[i] for i in cols]
     dx = np.linalg.lstsq(noise.whiten_jacobian(J), -z, rcond=None)[0]
     lo, hi = np.array([BASE_BOUNDS[q] for q in names], float).T
     x0 = np.array([f.values[q] for q in names], float)
     value = ctx.obs["value"].to_numpy(float)
-    best = z
+    best, y_best = z, f.prediction
     for share in GLS_STEPS:
         x = np.clip(x0 + share * dx, lo, hi)
         if np.allclose(x, x0, rtol=1e-12, atol=0.0):
@@ -175,9 +186,9 @@ def gls_step(ctx: Context, noise, f: Fit) -> np.ndarray:
             continue
         zs = noise.whiten(np.asarray(y, float) - value)
         if np.isfinite(zs).all() and zs @ zs < best @ best:
-            best = zs
+            best, y_best = zs, np.asarray(y, float)
             break
-    return best
+    return y_best
 
 
 @dataclass

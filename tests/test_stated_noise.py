@@ -160,9 +160,12 @@ def test_every_comparison_judges_a_fit_at_its_gls_step():
         return Context(_Linear(a, b, refuse), obs, np.ones(len(t)), {}, list(BASE_NAMES),
                        1e-3, 10.0, 20, share_with(None))
 
-    z = gls_step(ctx(), nm, fitted(x_ols))
+    c, f = ctx(), fitted(x_ols)
+    z = c.judged(nm, f)
     assert z @ z == pytest.approx(chi2_at(x_gls), rel=1e-9)
-    z = gls_step(ctx(), nm, fitted(x_gls))
+    np.testing.assert_allclose(c.judged_prediction(nm, f), A @ x_gls, rtol=1e-9)
+    np.testing.assert_allclose(gls_step(c, nm, f), A @ x_gls, rtol=1e-9)
+    z = ctx().judged(nm, fitted(x_gls))
     assert z @ z == pytest.approx(chi2_at(x_gls), rel=1e-9)
-    z = gls_step(ctx(refuse=True), nm, fitted(x_ols))
-    assert z @ z == pytest.approx(chi2_at(x_ols), rel=1e-9)
+    f = fitted(x_ols)
+    assert gls_step(ctx(refuse=True), nm, f) is f.prediction
