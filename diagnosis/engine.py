@@ -331,7 +331,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         finally:  # every round, the one that stops too
             entry["whole_round"] = round(time.perf_counter() - t_round, 2)
     t_end = time.perf_counter()
-    final_noise, rem = _what_remains(ctx, current, noise)
+    final_noise, rem = _what_remains(ctx, current, noise, also=[base])
     located = loc.locate(obs, ctx.judged(final_noise, base), 1.0,
                           sigma_dof=final_noise.dof)
     in_model = list(chosen)  # the effects of ``current``, named or not
@@ -600,9 +600,12 @@ def _gain_under_noise_of(ctx: Context, without: Fit, current: Fit, stated) -> di
             "needed": ctx.needed(current.k - without.k, 1, ctx.nu(nb, without, current))}
 
 
-def _what_remains(ctx: Context, current: Fit, stated):
-    """The noise model of ``current``'s residual and what that model leaves systematic."""
+def _what_remains(ctx: Context, current: Fit, stated, also: list = ()):
+    """The noise model of ``current``'s residual and what that model leaves systematic;
+    the GLS steps of ``current`` and of the fits ``also`` judged under it are shared
+    among the ranks first (each would otherwise be solved by every rank)."""
     nm = _noise_of(ctx.obs, current, stated)
+    ctx.judge_all(nm, [current, *also])
     return nm, _remains_under(ctx, current, nm)
 
 
@@ -694,6 +697,7 @@ def _rival_outcome(ctx: Context, base: Fit, current: Fit, in_model: list,
     rival = nm.rival()
     if rival is None:
         return {}
+    ctx.judge_all(rival, [current])
     rem = _remains_under(ctx, current, rival)
     (status, named, _), _ = _status_under(ctx.obs, base, current, in_model, rival, rem)
     return {"series": nm.describe_rivals(), "status": status, "effects": sorted(named)}

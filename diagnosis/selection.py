@@ -109,15 +109,16 @@ class Context:
 
     def judge_all(self, noise, fits) -> None:
         """:meth:`judged` for several fits at once, their steps shared among the ranks
-        (not inside :func:`diagnosis.sharing.sharing`, whose solves are collective)."""
+        (not inside :func:`diagnosis.sharing.sharing`, whose solves are collective).  A
+        step that met an internal error (recorded in ``errors`` by the sharing, the same
+        on every rank) is not tried again: ``f`` is judged where it was fitted."""
         todo = list({id(f): f for f in fits
                      if (id(f), id(noise)) not in self._judged}.values())
         ys = self.share(todo, lambda f: gls_step(self, noise, f),
                         lambda f: HISTORY_COST if any(e in f.effect for e in HISTORY)
                         else 1.0)
         for f, y in zip(todo, ys, strict=True):
-            if y is not None:  # an internal error: left to :meth:`judged`
-                self._keep(noise, f, y)
+            self._keep(noise, f, f.prediction if y is None else y)
 
     def chi2(self, noise, f: Fit) -> float:
         z = self.judged(noise, f)

@@ -169,3 +169,43 @@ def test_every_comparison_judges_a_fit_at_its_gls_step():
     assert z @ z == pytest.approx(chi2_at(x_gls), rel=1e-9)
     f = fitted(x_ols)
     assert gls_step(ctx(refuse=True), nm, f) is f.prediction
+
+
+class _Broken(_Linear):
+    """A model whose solves meet an internal error (not the model's own failure)."""
+
+    calls = 0
+
+    def predict(self, values, wrt=()):
+        type(self).calls += 1
+        raise OSError("disk full")
+
+
+def test_a_step_that_met_an_internal_error_is_judged_where_it_was_fitted():
+    """:meth:`Context.judge_all`: a GLS step whose solve raises an internal error is left
+    out once, recorded in ``errors``, and the fit is then judged at its own prediction
+    (its whitened residual exactly, no second attempt that would raise outside the work
+    sharing)."""
+    from diagnosis.effects import BASE_NAMES
+    from diagnosis.fitting import Fit
+    from diagnosis.open_world import noise_statement
+    from diagnosis.selection import Context
+    from diagnosis.sharing import share_with
+
+    t = np.arange(60.0)
+    obs = _obs(t, 15)
+    a, b = np.sin(np.pi * (t % 15) / 14), t / 60.0
+    A = np.c_[a, b]
+    obs["value"] = 2.0 * a + 3.0 * b + rig_noise(t, RIG, np.random.default_rng(4))
+    nm = fit_noise(obs, np.zeros(len(t)), stated=noise_statement({"torque": RIG}))
+    x = np.linalg.lstsq(A, obs["value"].to_numpy(), rcond=None)[0]
+    f = Fit("base", list(BASE_NAMES), dict(zip(BASE_NAMES, x, strict=True)), 0.0,
+            len(t), A @ x, None, 0, jacobian=A)
+    errors: list = []
+    sim = _Broken(a, b)
+    c = Context(sim, obs, np.ones(len(t)), {}, list(BASE_NAMES), 1e-3, 10.0, 20,
+                share_with(None, sim, errors), None, errors)
+    c.judge_all(nm, [f, f])
+    assert _Broken.calls == 1 and len(errors) == 1 and "OSError" in errors[0]
+    np.testing.assert_array_equal(c.judged(nm, f), nm.whiten(f.residual(obs)))
+    assert _Broken.calls == 1
