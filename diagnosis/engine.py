@@ -67,6 +67,7 @@ from .notes import (
     slowest_wander_doubt,
     split_doubt,
     threshold_doubt,
+    tie_doubt,
     wander_doubt,
 )
 from .remaining import (
@@ -107,7 +108,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.12-open-world-36"
+ENGINE_VERSION = "2026.12-open-world-37"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 RELAXATION = "viscoelastic"  # the effect whose relaxation time :func:`slow_relaxation` reads
@@ -391,6 +392,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                                     threshold_doubt(status, rem, alpha), undetermined,
                                     one_kind_doubt(chosen, obs, current),
                                     offset_doubt(rounds, chosen, len(obs), bic_margin),
+                                    tie_doubt(ambiguous, chosen),
                                     slow_doubt(slow),
                                     split_doubt(status, rem, _status_under(
                                         obs, base, current, in_model, final_noise, rem,

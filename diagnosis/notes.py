@@ -237,6 +237,22 @@ def offset_doubt(rounds: list, named: list, n: int, bic_margin: float) -> str:
     return ""
 
 
+def tie_doubt(ambiguous: list, named: list) -> str:
+    """Why a named effect cannot be trusted over another, or '': in the round that added
+    it, a candidate that is not named came within the BIC margin of it (the diagnosis's own
+    bar for earning a place), so these recordings do not tell which of the two is there;
+    the report has always said so (``ambiguous``: "cannot tell apart") and the verdict's
+    *cannot tell* now says it too.  A tie whose other effect was named later (both are in
+    the model) raises no doubt.  A function of ``ambiguous`` and the named effects
+    alone."""
+    ties = [a for a in ambiguous
+            if a["effects"][0] in named and a["effects"][1] not in named]
+    return "; ".join(
+        f"{a['effects'][0]} named, but {a['effects'][1]} came within the BIC margin of it "
+        f"(dBIC {a['delta_bic']:.1f}): these tests cannot tell them apart (what would: "
+        f"{a['separating_test']})" for a in ties)
+
+
 def split_doubt(status: str, rem: dict, unsplit: str) -> str:
     """Why a status that the split test decides cannot be trusted, or '': the shear tests
     ask for other material parameters by the test against the noise model

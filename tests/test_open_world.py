@@ -794,3 +794,24 @@ def test_a_drifting_stiffness_is_modelled_with_a_rate_and_a_level_per_test():
     assert out["parameters"]["mu_0"] == pytest.approx(1.3, rel=1e-6)
     assert out["parameters"]["level_1"] == pytest.approx(0.9, rel=1e-6)
     assert out["rms_after"] < 1e-4
+
+
+def test_a_named_effect_in_a_near_tie_is_a_cannot_tell():
+    """Seed 8's world017 (one torsion cycle, a Mullins softening): viscoelastic was added
+    with mullins 1.13 in BIC behind it, within the margin of 10, and named alone; the
+    report said "cannot tell apart", the verdict's *cannot tell* now says it too, with the
+    test that would separate them.  A tie whose other effect was named as well, or whose
+    named effect is not in the verdict (``unexplained``), raises nothing."""
+    from diagnosis.effects import separating_test
+    from diagnosis.notes import tie_doubt
+
+    tie = {"effects": ["viscoelastic", "mullins"], "delta_bic": 1.1289496976818327,
+           "separating_test": separating_test("viscoelastic", "mullins")}
+    said = tie_doubt([tie], ["viscoelastic"])
+    assert said.startswith("viscoelastic named, but mullins came within the BIC margin")
+    assert "(dBIC 1.1)" in said and tie["separating_test"] in said
+    assert tie_doubt([tie], ["mullins", "viscoelastic"]) == ""
+    assert tie_doubt([tie], []) == ""
+    assert tie_doubt([], ["viscoelastic"]) == ""
+    other = {**tie, "effects": ["ogden_2term", "artefacts"], "delta_bic": 6.4}
+    assert tie_doubt([tie, other], ["viscoelastic", "ogden_2term"]).count("named, but") == 2
