@@ -103,6 +103,20 @@ def test_the_noise_file_states_a_rig_in_full_for_every_specimen(tmp_path):
 
 
 
+def _linear_case():
+    """60 torque rows of y = 2 a + 3 b plus the rig's whole noise (``RIG``, seeded), for
+    the linear model :class:`_Linear`: times, observations, the two columns, the noise
+    statement and the noise model it states."""
+    from diagnosis.open_world import noise_statement
+
+    t = np.arange(60.0)
+    obs = _obs(t, 15)
+    a, b = np.sin(np.pi * (t % 15) / 14), t / 60.0
+    stated = noise_statement({"torque": RIG})
+    obs["value"] = 2.0 * a + 3.0 * b + rig_noise(t, RIG, np.random.default_rng(4))
+    return t, obs, a, b, stated, fit_noise(obs, np.zeros(len(t)), stated=stated)
+
+
 class _Linear:
     """y = mu a + alpha b: a model the generalised least squares solve in closed form."""
 
@@ -129,17 +143,11 @@ def test_every_comparison_judges_a_fit_at_its_gls_step():
     from diagnosis.effects import BASE_NAMES
     from diagnosis.fitting import Fit
     from diagnosis.noise import _series
-    from diagnosis.open_world import noise_statement
     from diagnosis.selection import Context, gls_step
     from diagnosis.sharing import share_with
 
-    t = np.arange(60.0)
-    obs = _obs(t, 15)
-    a, b = np.sin(np.pi * (t % 15) / 14), t / 60.0
-    stated = noise_statement({"torque": RIG})
-    v = 2.0 * a + 3.0 * b + rig_noise(t, RIG, np.random.default_rng(4))
-    obs["value"] = v
-    nm = fit_noise(obs, np.zeros(len(t)), stated=stated)
+    t, obs, a, b, stated, nm = _linear_case()
+    v = obs["value"].to_numpy()
     (series,) = _series(obs)
     C = series.covariance(stated["torque"])
     A = np.c_[a, b]
@@ -174,10 +182,12 @@ def test_every_comparison_judges_a_fit_at_its_gls_step():
 class _Broken(_Linear):
     """A model whose solves meet an internal error (not the model's own failure)."""
 
-    calls = 0
+    def __init__(self, a, b):
+        super().__init__(a, b)
+        self.calls = 0
 
     def predict(self, values, wrt=()):
-        type(self).calls += 1
+        self.calls += 1
         raise OSError("disk full")
 
 
@@ -188,16 +198,11 @@ def test_a_step_that_met_an_internal_error_is_judged_where_it_was_fitted():
     sharing)."""
     from diagnosis.effects import BASE_NAMES
     from diagnosis.fitting import Fit
-    from diagnosis.open_world import noise_statement
     from diagnosis.selection import Context
     from diagnosis.sharing import share_with
 
-    t = np.arange(60.0)
-    obs = _obs(t, 15)
-    a, b = np.sin(np.pi * (t % 15) / 14), t / 60.0
+    t, obs, a, b, _, nm = _linear_case()
     A = np.c_[a, b]
-    obs["value"] = 2.0 * a + 3.0 * b + rig_noise(t, RIG, np.random.default_rng(4))
-    nm = fit_noise(obs, np.zeros(len(t)), stated=noise_statement({"torque": RIG}))
     x = np.linalg.lstsq(A, obs["value"].to_numpy(), rcond=None)[0]
     f = Fit("base", list(BASE_NAMES), dict(zip(BASE_NAMES, x, strict=True)), 0.0,
             len(t), A @ x, None, 0, jacobian=A)
@@ -206,6 +211,6 @@ def test_a_step_that_met_an_internal_error_is_judged_where_it_was_fitted():
     c = Context(sim, obs, np.ones(len(t)), {}, list(BASE_NAMES), 1e-3, 10.0, 20,
                 share_with(None, sim, errors), None, errors)
     c.judge_all(nm, [f, f])
-    assert _Broken.calls == 1 and len(errors) == 1 and "OSError" in errors[0]
+    assert sim.calls == 1 and len(errors) == 1 and "OSError" in errors[0]
     np.testing.assert_array_equal(c.judged(nm, f), nm.whiten(f.residual(obs)))
-    assert _Broken.calls == 1
+    assert sim.calls == 1
