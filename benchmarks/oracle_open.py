@@ -33,12 +33,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 from pathlib import Path
 
 from mpi4py import MPI
 from rediagnose_open import _case  # this folder is on the path when run as a script
-from scipy import stats
 from visible_beside import stored
 
 from brain_fe.io import write_json_atomic
@@ -47,7 +45,7 @@ from diagnosis.effects import BASE_NAMES, library, parameter_names
 from diagnosis.engine import _base, _noise_of
 from diagnosis.fitting import fit
 from diagnosis.open_world import misfit_left
-from diagnosis.selection import Context, Union
+from diagnosis.selection import Context, Union, chi2_needed
 from simulators.fe import FESimulator
 
 ALPHA, BIC_MARGIN = 1e-3, 10.0  # the diagnosis's defaults (diagnosis.engine.diagnose)
@@ -90,7 +88,7 @@ def outside_oracle(src: Path, name: str, res: dict, n: int) -> dict:
     r = misfit_left(spec, truth, times, lab["noise_sd"], {}, beside=named,
                     start=res["refit_parameters"])
     left = n * r**2
-    need = max(float(stats.chi2.isf(ALPHA, 1)), math.log(n) + BIC_MARGIN)
+    need = chi2_needed(1, 1, n, ALPHA, BIC_MARGIN)  # the most favourable test: one parameter
     return {"named": "+".join(sorted(named)), "truth": lab["effects"][0],
             "rms_left_over_noise": r, "chi2_left": left, "needed_by_one_parameter": need,
             "ratio": left / need, "detectable": bool(left >= need)}

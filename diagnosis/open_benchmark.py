@@ -37,6 +37,7 @@ from .benchmark import rms_over_true_noise
 from .effects import EFFECTS
 from .engine import ENGINE_VERSION, diagnose
 from .open_world import NOISE_KINDS, OUTSIDE, PAIRS, VISIBLE, make_case, noise_sd
+from .selection import chi2_needed
 
 log = logging.getLogger(__name__)
 
@@ -263,6 +264,41 @@ def separable(label: dict) -> bool | None:
     if not beside or not np.isfinite(beside).all():
         return None
     return bool(min(beside) >= VISIBLE)
+
+
+def mimicked(closest: dict) -> bool | None:
+    """Whether a library effect mimics an outside one in its case's tests: ``closest``
+    (:func:`diagnosis.open_world.closest_library`) holds an effect whose best fit leaves
+    the noiseless recordings less than even the most favourable test of a systematic
+    misfit, one parameter, needs (n r^2 < :func:`diagnosis.selection.chi2_needed` (1, 1,
+    n), n recorded values, r the RMS left in noise SDs: the outside rule of
+    ``benchmarks/oracle_open.py``, under white noise at the rig's SD; a rig's wander
+    weakens any test further).  Then the recordings cannot show that anything outside the
+    library is at work, and `unexplained` is out of any rule's reach.  None when nothing
+    was measured."""
+    n = int((closest or {}).get("points") or 0)
+    vals = [float(v) for v in ((closest or {}).get("rms_left_over_noise") or {}).values()
+            if np.isfinite(v)]
+    if not vals or n <= 0:
+        return None
+    return bool(n * min(vals) ** 2 < chi2_needed(1, 1, n))
+
+
+def outside_ceiling(by_case: list, closest: dict) -> dict:
+    """The outside cases of a scored run (``by_case`` of its summary) split by whether a
+    library effect mimics them (``closest``: case -> :func:`diagnosis.open_world.
+    closest_library`): the right answer `unexplained` is out of any diagnosis's reach on a
+    mimicked case, so the score of the rest is what the diagnosis can be held to."""
+    rows = [r for r in by_case if r["kind"] == "outside" and r["case"] in closest]
+    flags = {r["case"]: mimicked(closest[r["case"]]) for r in rows}
+    free = [r for r in rows if flags[r["case"]] is False]
+    mim = [r for r in rows if flags[r["case"]]]
+    return {"measured": sum(f is not None for f in flags.values()),
+            "mimicked": sorted(r["case"] for r in mim),
+            "mimicked_correct": sum(bool(r["correct"]) for r in mim),
+            "not_mimicked": len(free),
+            "not_mimicked_correct": sum(bool(r["correct"]) for r in free),
+            "not_mimicked_wrong": sorted(r["case"] for r in free if not r["correct"])}
 
 
 def score(labels: dict, results: dict) -> dict:

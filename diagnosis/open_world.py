@@ -411,6 +411,13 @@ def misfit_left(spec, truth, times, noise_sd_ch, models, beside: tuple = (),
     working mesh (truth and fit alike: the calibration measures the effect only).  With
     library effects ``beside`` (started at their true values, or at ``start``), the best
     fit of the base model with them: what the truth's other effects show beyond those."""
+    z = residual_left(spec, truth, times, noise_sd_ch, models, beside, start)
+    return float(np.sqrt(np.mean(z**2)))
+
+
+def residual_left(spec, truth, times, noise_sd_ch, models, beside: tuple = (),
+                  start: dict | None = None) -> np.ndarray:
+    """The residual (in noise SDs, one entry per recorded value) of :func:`misfit_left`."""
     clean = simulate(spec, truth, times, refinement=CALIBRATION_REFINEMENT, substeps=1,
                      models=models)
     clean["specimen"] = "calibration"
@@ -425,7 +432,7 @@ def misfit_left(spec, truth, times, noise_sd_ch, models, beside: tuple = (),
     start = {k: given[k] if k in given else truth.values[k] for k in names}
     f = fit(sim, obs, sigma, start, names, max_nfev=30, effect="+".join(beside) or "base",
             effect_def=Union(lib, beside) if beside else None)
-    return float(np.sqrt(np.mean(f.z**2)))
+    return np.asarray(f.z, float)
 
 
 def _model_geometry(models, spec):
@@ -479,6 +486,32 @@ def visible_beside(effects: list, spec, truth: Truth, times, sd, models) -> dict
             log.warning("%s beside %s: not measured (%s)", e, effects, exc)
             out[e] = float("nan")
     return out
+
+
+def closest_library(spec, truth: Truth, times, sd, models, effects=None) -> dict:
+    """How near the library comes to a truth: per library effect (``effects``, default
+    every one of the cylinder's library) the misfit (noise SDs, RMS) the truth leaves to
+    the best base model with that effect alone, on the working mesh (:func:`misfit_left`,
+    from each of the effect's own start values, :attr:`diagnosis.effects.Effect.starts`;
+    the least; NaN where no start was solved), and the number of recorded values
+    (``points``): what :func:`diagnosis.open_benchmark.mimicked` judges.  The cost, about
+    ten fits per case, keeps it out of the generator: ``benchmarks/mimicked_outside.py``
+    measures it for a draw's outside cases."""
+    lib = library("fe")
+    rms, points = {}, 0
+    for e in lib if effects is None else effects:
+        best = math.nan
+        for s in lib[e].starts:
+            try:
+                z = residual_left(spec, truth, times, sd, models, beside=(e,),
+                                  start={str(k): v for k, v in s.items()})
+            except (RuntimeError, ValueError) as exc:  # not solved from this start
+                log.warning("closest library effect %s: a start not solved (%s)", e, exc)
+                continue
+            m, points = float(np.sqrt(np.mean(z**2))), len(z)
+            best = m if not best <= m else best
+        rms[e] = best
+    return {"rms_left_over_noise": rms, "points": points}
 
 
 def make_case(name: str, kind: str, effects: list, rng, *, noise_kinds=None,

@@ -815,3 +815,51 @@ def test_a_named_effect_in_a_near_tie_is_a_cannot_tell():
     assert tie_doubt([], ["viscoelastic"]) == ""
     other = {**tie, "effects": ["ogden_2term", "artefacts"], "delta_bic": 6.4}
     assert tie_doubt([tie, other], ["viscoelastic", "ogden_2term"]).count("named, but") == 2
+
+
+def test_an_outside_effect_a_library_effect_follows_is_mimicked():
+    """The generator's rule for outside cases (diagnosis.open_world.closest_library): the
+    misfit a truth leaves to the base model with each library effect alone, fitted from
+    that effect's own start values.  A truth whose compressibility (nu0 = 0.40) stands in
+    for something outside the library: the compressibility candidate is the truth's own
+    family, so it leaves nothing up to the two paths' difference (bound 0.1 noise SD, as
+    the pair rule's test) and the case counts as mimicked (n r^2 far below the 10.8 that
+    even one parameter needs); a relaxation cannot take a change of the volumetric
+    response (above 1.5 noise SD).  The bar is the oracle's: n r^2 against
+    max(chi2_1 at 1e-3, ln n + 10).  The split of a run's outside score counts the
+    mimicked cases apart."""
+    import math
+
+    from brain_fe.parameters import Param
+    from diagnosis.open_benchmark import mimicked, outside_ceiling
+    from diagnosis.open_world import Specimen, Truth, closest_library
+
+    spec = Specimen(4.0, 5.0, 0.15, (0.3,), 1, 0.03, 0.01)
+    rng = np.random.default_rng(0)
+    times = [record_times(spec, p, rng) for p in spec.protocols()]
+    truth = Truth({Param("mu", 0): 1.0, Param("alpha", 0): -15.0, Param("nu0"): 0.40})
+    sd = {"stress": 0.01, "torque": 0.1, "axial_force": 0.02}
+    closest = closest_library(spec, truth, times, sd, {},
+                              effects=("compressibility", "viscoelastic"))
+    rms, n = closest["rms_left_over_noise"], closest["points"]
+    # stress in compression/tension, torque and axial force in torsion
+    assert n == len(times[0]) + 2 * len(times[1])
+    assert rms["compressibility"] < 0.1 and rms["viscoelastic"] > 1.5
+    assert mimicked(closest)
+    assert mimicked({"points": n, "rms_left_over_noise": {"v": rms["viscoelastic"]}}) is False
+    at_bar = math.sqrt((math.log(400) + 10.0) / 400)  # 400 points: the BIC side rules
+    assert mimicked({"points": 400, "rms_left_over_noise": {"a": 0.99 * at_bar}})
+    assert not mimicked({"points": 400, "rms_left_over_noise": {"a": 1.01 * at_bar}})
+    assert mimicked({"points": 400, "rms_left_over_noise": {"a": float("nan")}}) is None
+
+    def at(r):
+        return {"points": 400, "rms_left_over_noise": {"ogden_2term": r}}
+
+    by_case = [{"case": "a", "kind": "outside", "correct": False},
+               {"case": "b", "kind": "outside", "correct": True},
+               {"case": "c", "kind": "outside", "correct": False},
+               {"case": "d", "kind": "single", "correct": True}]
+    split = outside_ceiling(by_case, {"a": at(0.1), "b": at(3.0), "c": at(2.0), "d": at(0.1)})
+    assert split == {"measured": 3, "mimicked": ["a"], "mimicked_correct": 0,
+                     "not_mimicked": 2, "not_mimicked_correct": 1,
+                     "not_mimicked_wrong": ["c"]}

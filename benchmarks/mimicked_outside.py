@@ -1,0 +1,97 @@
+"""Which outside-the-library cases of an open-world draw a library effect mimics.
+
+For every ``outside`` case of a ``brainmech benchmark-diagnosis --world open`` draw, the
+generator's rule of :func:`diagnosis.open_world.closest_library`: the misfit (noise SDs,
+RMS) that the noiseless recordings leave to the best base model with each library effect
+alone, on the working mesh.  Where one leaves less than even the most favourable test,
+one parameter, needs (:func:`diagnosis.open_benchmark.mimicked`), that effect mimics the
+outside one in the specimen's tests, and no diagnosis can tell from the recordings that
+something outside the library is at work.  The cases come from a stored run
+(``--benchmark``: its labels and recorded times) or are drawn again from the seed
+(``--seed``: the generator is deterministic, so a draw's outside cases can be measured
+after its case data are gone; only the outside cases are made, no diagnosis is run).
+With ``--summary`` (the run's ``summary.json``), the outside score is split by it
+(:func:`diagnosis.open_benchmark.outside_ceiling`).
+
+    OPENBLAS_NUM_THREADS=1 mpirun -n 2 .venv/bin/python benchmarks/mimicked_outside.py \\
+        --seed 10 --summary open/summary.json --out mimicked.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+from mpi4py import MPI
+from visible_beside import stored
+
+from brain_fe.io import write_json_atomic
+from brain_fe.parallel import SharedCounter, dynamic_items
+from diagnosis.open_benchmark import _case, mimicked, outside_ceiling, plan
+from diagnosis.open_world import closest_library, noise_sd
+
+
+def _times(rec, spec) -> list:
+    return [rec[(rec.test == p.test) & (rec.amplitude.round(4) == round(p.amplitude, 4))]
+            ["time_s"].to_numpy(float) for p in spec.protocols()]
+
+
+def _outside_case(a, name: str, models: dict):
+    """(truth effects, base misfit alone, specimen, truth, recorded times, noise SD)."""
+    if a.benchmark:
+        lab, spec, truth, times = stored(Path(a.benchmark), name)
+        return lab["effects"], lab["base_misfit_over_noise"], spec, truth, times, \
+            lab["noise_sd"]
+    made = _case(int(name[5:]), a.seed, models)
+    if made is None:
+        return None
+    rec, _, case = made
+    return case.effects, case.misfits, case.spec, case.truth, _times(rec, case.spec), \
+        noise_sd(case.noise)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--benchmark", help="a stored open-world run (its labels/ and cases/)")
+    src.add_argument("--seed", type=int, help="draw the outside cases of this seed again")
+    ap.add_argument("--cases", type=int, default=122, help="the draw's number of cases "
+                    "(with --seed; default 122)")
+    ap.add_argument("--summary", help="the run's summary.json: split its outside score")
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    comm = MPI.COMM_WORLD
+    if a.benchmark:
+        names = sorted(p.stem for p in (Path(a.benchmark) / "labels").glob("world*.json")
+                       if json.loads(p.read_text())["kind"] == "outside")
+    else:
+        names = [f"world{i:03d}" for i in range(a.cases) if plan(i, a.seed)[0] == "outside"]
+    counter, mine, models = SharedCounter(comm), {}, {}
+    for name in dynamic_items(names, counter):
+        made = _outside_case(a, name, models)
+        if made is None:
+            continue
+        effects, alone, spec, truth, times, sd = made
+        closest = closest_library(spec, truth, times, sd, models)
+        mine[name] = {"effects": effects, "alone": alone, "closest": closest,
+                      "mimicked": mimicked(closest)}
+        logging.getLogger("mimicked").warning(
+            "%s %s: alone %s, closest library %s", name, effects, alone,
+            {k: round(v, 2) for k, v in closest["rms_left_over_noise"].items()})
+    counter.free()
+    every = {k: v for part in comm.allgather(mine) for k, v in part.items()}
+    if comm.rank == 0:
+        out = {"cases": every,
+               "mimicked": sorted(n for n, r in every.items() if r["mimicked"])}
+        if a.summary:
+            by_case = json.loads(Path(a.summary).read_text())["by_case"]
+            out["score"] = outside_ceiling(by_case, {n: r["closest"]
+                                                     for n, r in every.items()})
+        write_json_atomic(Path(a.out), out, indent=1, default=str)
+
+
+if __name__ == "__main__":
+    main()
