@@ -36,7 +36,10 @@ For a pair, the label also says how much of each effect its partner cannot mimic
 (:func:`visible_beside`): compressibility beside a soft glue layer, for instance, is
 hardly ever separable by compression/tension and torsion of glued specimens.  Such a pair
 is kept (the benchmark asks for it), and the summary scores the pairs whose tests
-separate both effects apart.
+separate both effects apart.  For an outside effect, :func:`closest_library` measures how
+near the best base model with each library effect alone comes to the truth (a second
+Ogden term follows some axial fibre families to a fraction of the noise); it is too
+costly for every draw and is run apart (``benchmarks/mimicked_outside.py``).
 """
 
 from __future__ import annotations
