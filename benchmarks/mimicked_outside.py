@@ -25,17 +25,12 @@ import logging
 from pathlib import Path
 
 from mpi4py import MPI
-from visible_beside import stored
+from visible_beside import recorded_times, stored
 
 from brain_fe.io import write_json_atomic
 from brain_fe.parallel import SharedCounter, dynamic_items
 from diagnosis.open_benchmark import _case, mimicked, outside_ceiling, plan
 from diagnosis.open_world import closest_library, noise_sd
-
-
-def _times(rec, spec) -> list:
-    return [rec[(rec.test == p.test) & (rec.amplitude.round(4) == round(p.amplitude, 4))]
-            ["time_s"].to_numpy(float) for p in spec.protocols()]
 
 
 def _outside_case(a, name: str, models: dict):
@@ -48,7 +43,7 @@ def _outside_case(a, name: str, models: dict):
     if made is None:
         return None
     rec, _, case = made
-    return case.effects, case.misfits, case.spec, case.truth, _times(rec, case.spec), \
+    return case.effects, case.misfits, case.spec, case.truth, recorded_times(rec, case.spec), \
         noise_sd(case.noise)
 
 

@@ -43,9 +43,13 @@ def stored(src: Path, name: str):
                   **{OUTSIDE_FIELDS[k]: v for k, v in lab["truth"].items()
                      if k in OUTSIDE_FIELDS})
     rec = pd.read_csv(src / "cases" / f"{name}_recordings.csv")
-    times = [rec[(rec.test == p.test) & (rec.amplitude.round(4) == round(p.amplitude, 4))]
-             ["time_s"].to_numpy(float) for p in spec.protocols()]
-    return lab, spec, truth, times
+    return lab, spec, truth, recorded_times(rec, spec)
+
+
+def recorded_times(rec: pd.DataFrame, spec: Specimen) -> list:
+    """The recorded times of each of ``spec``'s protocols in the recordings ``rec``."""
+    return [rec[(rec.test == p.test) & (rec.amplitude.round(4) == round(p.amplitude, 4))]
+            ["time_s"].to_numpy(float) for p in spec.protocols()]
 
 
 def main() -> None:
