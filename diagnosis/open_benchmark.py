@@ -266,31 +266,40 @@ def separable(label: dict) -> bool | None:
     return bool(min(beside) >= VISIBLE)
 
 
-def mimicked(closest: dict) -> bool | None:
+def mimicked(closest: dict, under: str = "white") -> bool | None:
     """Whether a library effect mimics an outside one in its case's tests: ``closest``
     (:func:`diagnosis.open_world.closest_library`) holds an effect whose best fit leaves
     the noiseless recordings less than even the most favourable test of a systematic
-    misfit, one parameter, needs (n r^2 < :func:`diagnosis.selection.chi2_needed` (1, 1,
-    n), n recorded values, r the RMS left in noise SDs: the outside rule of
-    ``benchmarks/oracle_open.py``, under white noise at the rig's SD; a rig's wander
-    weakens any test further).  Then the recordings cannot show that anything outside the
-    library is at work, and `unexplained` is out of any rule's reach.  None when nothing
-    was measured."""
-    n = int((closest or {}).get("points") or 0)
-    vals = [float(v) for v in ((closest or {}).get("rms_left_over_noise") or {}).values()
-            if np.isfinite(v)]
-    if not vals or n <= 0:
+    misfit, one parameter, needs (:func:`diagnosis.selection.chi2_needed` (1, 1, n), n
+    recorded values).  ``under``: the noise that test faces: ``white``, white noise at the
+    rig's SD (the misfit's size n r^2, r the RMS left in noise SDs: the outside rule of
+    ``benchmarks/oracle_open.py``), or ``rig``, the rig's whole noise, its wander, filter
+    and drift included (``chi2_under_rig_noise``, :func:`diagnosis.open_world.misfit_chi2`),
+    which a misfit as slow as they are hides in.  Then the recordings cannot show that
+    anything outside the library is at work, and `unexplained` is out of any rule's
+    reach.  None when nothing was measured."""
+    closest = closest or {}
+    n = int(closest.get("points") or 0)
+    if under == "white":
+        sizes = [n * float(v) ** 2 for v in (closest.get("rms_left_over_noise") or {}).values()]
+    elif under == "rig":
+        sizes = [float(v) for v in (closest.get("chi2_under_rig_noise") or {}).values()]
+    else:
+        raise ValueError(f"under: 'white' or 'rig', not {under!r}")
+    sizes = [v for v in sizes if np.isfinite(v)]
+    if not sizes or n <= 0:
         return None
-    return bool(n * min(vals) ** 2 < chi2_needed(1, 1, n))
+    return bool(min(sizes) < chi2_needed(1, 1, n))
 
 
-def outside_ceiling(by_case: list, closest: dict) -> dict:
+def outside_ceiling(by_case: list, closest: dict, under: str = "white") -> dict:
     """The outside cases of a scored run (``by_case`` of its summary) split by whether a
     library effect mimics them (``closest``: case -> :func:`diagnosis.open_world.
-    closest_library`): the right answer `unexplained` is out of any diagnosis's reach on a
-    mimicked case, so the score of the rest is what the diagnosis can be held to."""
+    closest_library`; ``under``: the noise of :func:`mimicked`): the right answer
+    `unexplained` is out of any diagnosis's reach on a mimicked case, so the score of the
+    rest is what the diagnosis can be held to."""
     rows = [r for r in by_case if r["kind"] == "outside" and r["case"] in closest]
-    flags = {r["case"]: mimicked(closest[r["case"]]) for r in rows}
+    flags = {r["case"]: mimicked(closest[r["case"]], under) for r in rows}
     free = [r for r in rows if flags[r["case"]] is False]
     mim = [r for r in rows if flags[r["case"]]]
     return {"measured": sum(f is not None for f in flags.values()),

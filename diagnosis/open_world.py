@@ -77,8 +77,9 @@ from simulators.fe import FESimulator
 from .benchmark import MAX_SIZE, effect_values
 from .effects import library, parameter_names
 from .fitting import fit
-from .noise import ChannelNoise
+from .noise import ChannelNoise, NoiseModel
 from .selection import Union
+from .series import groups
 
 log = logging.getLogger(__name__)
 
@@ -499,18 +500,22 @@ def visible_beside(effects: list, spec, truth: Truth, times, sd, models) -> dict
     return out
 
 
-def closest_library(spec, truth: Truth, times, sd, models, effects=None) -> dict:
+def closest_library(spec, truth: Truth, times, sd, models, effects=None, rig=None) -> dict:
     """How near the library comes to a truth: per library effect (``effects``, default
     every one of the cylinder's library) the misfit (noise SDs, RMS) the truth leaves to
     the best base model with that effect alone, on the working mesh (:func:`misfit_left`,
     from each of the effect's own start values, :attr:`diagnosis.effects.Effect.starts`;
     the least; NaN where no start was solved), and the number of recorded values
-    (``points``): what :func:`diagnosis.open_benchmark.mimicked` judges.  The cost, about
-    ten fits per case, keeps it out of the generator: ``benchmarks/mimicked_outside.py``
-    measures it for a draw's outside cases."""
+    (``points``): what :func:`diagnosis.open_benchmark.mimicked` judges.  With ``rig``
+    (channel -> the rig's :class:`RigNoise`, or its fields), also that misfit's size under
+    the rig's whole noise (``chi2_under_rig_noise``: :func:`misfit_chi2`, what the best
+    test aimed at it sees when wander, filter and drift are part of the noise).  The cost,
+    about ten fits per case, keeps it out of the generator:
+    ``benchmarks/mimicked_outside.py`` measures it for a draw's outside cases."""
     lib = library("fe")
     obs = clean_observations(spec, truth, times, models)  # the truth, solved once
-    rms = {}
+    sigma = obs["channel"].map(sd).to_numpy(float)
+    rms, chi2 = {}, {}
     for e in lib if effects is None else effects:
         left = []
         for s in lib[e].starts:
@@ -520,9 +525,29 @@ def closest_library(spec, truth: Truth, times, sd, models, effects=None) -> dict
             except (RuntimeError, ValueError) as exc:  # not solved from this start
                 log.warning("closest library effect %s: a start not solved (%s)", e, exc)
                 continue
-            left.append(float(np.sqrt(np.mean(z**2))))
-        rms[e] = min(left) if left else math.nan
-    return {"rms_left_over_noise": rms, "points": len(obs)}
+            left.append((float(np.sqrt(np.mean(z**2))), z))
+        best = min(left, key=lambda x: x[0]) if left else (math.nan, None)
+        rms[e] = best[0]
+        if rig is not None:
+            chi2[e] = math.nan if best[1] is None else misfit_chi2(obs, best[1] * sigma, rig)
+    out = {"rms_left_over_noise": rms, "points": len(obs)}
+    if rig is not None:
+        out["chi2_under_rig_noise"] = chi2
+    return out
+
+
+def misfit_chi2(obs: pd.DataFrame, misfit: np.ndarray, rig: dict) -> float:
+    """``m^T Sigma^-1 m``: the size of a misfit ``m`` (the channels' units, one value per
+    row of ``obs``) under the rig's whole noise (``rig``: channel -> :class:`RigNoise` or
+    its fields; white with the rounding, filter, wander and drift, as
+    :func:`noise_statement` states them), Sigma block diagonal over the series.  It is the
+    non-centrality of the best test aimed at the misfit's own shape; under white noise of
+    SD sigma it is ``sum (m / sigma)^2``."""
+    stated = noise_statement(rig)
+    obs = obs.reset_index(drop=True)
+    nm = NoiseModel(obs, {(str(k[1]), str(k[2])): stated[str(k[2])] for k, _ in groups(obs)})
+    z = nm.whiten(np.asarray(misfit, float))
+    return float(z @ z)
 
 
 def make_case(name: str, kind: str, effects: list, rng, *, noise_kinds=None,

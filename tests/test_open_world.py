@@ -863,3 +863,51 @@ def test_an_outside_effect_a_library_effect_follows_is_mimicked():
     assert split == {"measured": 3, "mimicked": ["a"], "mimicked_correct": 0,
                      "not_mimicked": 2, "not_mimicked_correct": 1,
                      "not_mimicked_wrong": ["c"]}
+
+
+def test_a_misfit_under_the_rigs_whole_noise_matches_closed_forms():
+    """The size of a misfit under a rig's whole noise (diagnosis.open_world.misfit_chi2,
+    m^T Sigma^-1 m), what the outside cases' second bar judges, against closed forms
+    written here: white noise with rounding, sum m^2 / (white^2 + q^2 / 12); a drift from
+    the tare (Sigma = w^2 I + d^2 t t^T), the Sherman-Morrison inverse; two points of a
+    wander (Ornstein-Uhlenbeck: covariance c^2 exp(-dt / tau) off the diagonal), the 2 x 2
+    inverse; series independent of each other.  Then the bar of the split: a misfit that
+    white noise at the rig's SD would show is mimicked under a rig whose wander hides it."""
+    import math
+    from dataclasses import asdict
+
+    from diagnosis.open_benchmark import mimicked, outside_ceiling
+    from diagnosis.open_world import misfit_chi2
+
+    rng = np.random.default_rng(3)
+    t_a, t_b, t_c = np.arange(30.0), np.arange(20.0) * 0.5, np.array([0.0, 4.0])
+    obs = pd.DataFrame({
+        "specimen": "s", "curve": ["a"] * 30 + ["b"] * 20 + ["c"] * 2,
+        "channel": ["stress"] * 30 + ["torque"] * 20 + ["axial_force"] * 2,
+        "time_s": np.concatenate([t_a, t_b, t_c]), "value": 1.0})
+    m = rng.normal(size=len(obs))
+    rig = {"stress": RigNoise(white=0.1, drift=0.002, quantum=0.05),
+           "torque": RigNoise(white=0.3), "axial_force": RigNoise(white=0.2, wander=0.5,
+                                                                  wander_s=8.0)}
+    w2, d2 = 0.1**2 + 0.05**2 / 12, 0.002**2
+    ma, mb, (m1, m2) = m[:30], m[30:50], m[50:]
+    stress = (ma @ ma - d2 * (t_a @ ma) ** 2 / (w2 + d2 * (t_a @ t_a))) / w2
+    torque = mb @ mb / 0.3**2
+    a, b = 0.2**2 + 0.5**2, 0.5**2 * np.exp(-4.0 / 8.0)
+    axial = (a * (m1**2 + m2**2) - 2 * b * m1 * m2) / (a * a - b * b)
+    assert misfit_chi2(obs, m, rig) == pytest.approx(stress + torque + axial, rel=1e-9)
+    # the fields of a label's noise state the same rig
+    assert misfit_chi2(obs, m, {k: asdict(v) for k, v in rig.items()}) == pytest.approx(
+        stress + torque + axial, rel=1e-9)
+
+    # 400 points: the one-parameter bar is ln 400 + 10 = 16.0; white noise sees 20, the
+    # rig's wander leaves 12 of it
+    seen = {"points": 400, "rms_left_over_noise": {"a": math.sqrt(20.0 / 400)},
+            "chi2_under_rig_noise": {"a": 12.0}}
+    assert mimicked(seen) is False and mimicked(seen, "rig") is True
+    assert mimicked({"points": 400, "rms_left_over_noise": {"a": 0.1}}, "rig") is None
+    with pytest.raises(ValueError, match="under"):
+        mimicked(seen, "pink")
+    by_case = [{"case": "a", "kind": "outside", "correct": False}]
+    assert outside_ceiling(by_case, {"a": seen}, "rig")["mimicked"] == ["a"]
+    assert outside_ceiling(by_case, {"a": seen})["not_mimicked_wrong"] == ["a"]
