@@ -32,7 +32,7 @@ from visible_beside import recorded_times, stored
 
 from brain_fe.io import write_json_atomic
 from brain_fe.parallel import SharedCounter, dynamic_items
-from diagnosis.open_benchmark import _case, mimicked, outside_ceiling, plan
+from diagnosis.open_benchmark import draw_case, mimicked, outside_ceiling, plan
 from diagnosis.open_world import closest_library, noise_sd
 
 
@@ -43,7 +43,7 @@ def _outside_case(a, name: str, models: dict):
         lab, spec, truth, times = stored(Path(a.benchmark), name)
         return lab["effects"], lab["base_misfit_over_noise"], spec, truth, times, \
             lab["noise_sd"], lab["noise"]
-    made = _case(int(name[5:]), a.seed, models)
+    made = draw_case(int(name[5:]), a.seed, models)
     if made is None:
         return None
     rec, _, case = made

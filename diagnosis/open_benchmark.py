@@ -71,7 +71,7 @@ def plan(i: int, seed: int) -> tuple[str, list, tuple | None, np.random.Generato
     return kind, effects, noise, rng
 
 
-def _case(i: int, seed: int, models: dict):
+def draw_case(i: int, seed: int, models: dict):
     """Case ``i`` (recordings, specimens, WorldCase), or None when five truths in a row
     could not be followed by the converged model (reported in the summary, not scored)."""
     name = f"world{i:03d}"
@@ -144,7 +144,7 @@ def run_open_benchmark(n_cases: int, seed: int, out: str | Path, *, refinement: 
         # index, not on the rank or the cases before it)
         for i in dynamic_items(range(n_cases), counter):
             t0 = time.perf_counter()
-            made = _case(i, seed, models)
+            made = draw_case(i, seed, models)
             if made is None:
                 skipped.append(f"world{i:03d}")
                 continue
