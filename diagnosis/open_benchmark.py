@@ -310,6 +310,25 @@ def outside_ceiling(by_case: list, closest: dict, under: str = "white") -> dict:
             "not_mimicked_wrong": sorted(r["case"] for r in free if not r["correct"])}
 
 
+def trace(res: dict) -> dict:
+    """What a diagnosis's last decisions read, kept with each case of a summary so that a
+    rule on them can be tried on stored draws without their case data (which a run keeps
+    only in its own folder): the p-values of the tests of what remains
+    (:mod:`diagnosis.remaining`), the effects merely tried, the slow relaxation
+    (:func:`diagnosis.engine.slow_relaxation`, with its gain under the noise of the fit
+    without it) and the *cannot tell* text."""
+    rem = res.get("remaining") or {}
+    slow = res.get("slow_relaxation") or {}
+    return {"p_values": {k: (rem.get(k) or {}).get("p_value")
+                         for k in ("reproducible", "trend", "split")},
+            "repeats": (rem.get("reproducible") or {}).get("repeats"),
+            "tried": list(res.get("tried") or []),
+            "slow": {k: slow[k] for k in ("tau_s", "longest_test_s",
+                                          "gain_under_noise_without", "needed")
+                     if k in slow} or None,
+            "cannot_tell": res.get("cannot_tell") or None}
+
+
 def score(labels: dict, results: dict) -> dict:
     """Scores per kind, the confusion matrices (expected x verdict, kind x status), RMS."""
     rows = []
@@ -329,7 +348,8 @@ def score(labels: dict, results: dict) -> dict:
                      "misfit": max(lab["base_misfit_over_noise"].values(), default=0.0),
                      "separable": separable(lab),
                      "cannot_tell": bool(r.get("cannot_tell")),
-                     "elapsed_s": r.get("elapsed_s", float("nan"))})
+                     "elapsed_s": r.get("elapsed_s", float("nan")),
+                     "trace": trace(r)})
     df = pd.DataFrame(rows)
     out: dict = {"cases": len(df), "by_case": rows}
     for kind in KINDS:

@@ -193,6 +193,14 @@ def test_open_world_two_cases_blind(tmp_path):
     assert again["confusion"] == s["confusion"]
     assert again["explained_rms_over_true_noise_max"] == pytest.approx(
         s["explained_rms_over_true_noise_max"], rel=1e-9)
+    # each case keeps what the last decisions read (diagnosis.open_benchmark.trace):
+    # the p-values of the tests of what remains, as the diagnosis wrote them
+    for row in s["by_case"]:
+        rem = results[row["case"]]["remaining"]
+        assert row["trace"]["p_values"] == {k: rem[k]["p_value"]
+                                            for k in ("reproducible", "trend", "split")}
+        assert row["trace"]["repeats"] == rem["reproducible"]["repeats"]
+        assert row["trace"]["slow"] is None  # no relaxation slower than the test here
 
 
 def test_an_effect_that_does_not_halve_the_misfit_is_not_named():
