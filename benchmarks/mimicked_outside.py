@@ -12,12 +12,14 @@ something outside the library is at work.  The cases come from a stored run
 after its case data are gone; only the outside cases are made, no diagnosis is run).
 Two bars: white noise at the rig's SD (optimistic: the most any test could see), and the
 rig's whole noise, wander, filter and drift included (``mimicked_under_rig_noise``: a
-misfit as slow as the rig's wander hides in it).  With ``--summary`` (the run's
+misfit as slow as the rig's wander hides in it).  With ``--pairs``, every pair of library
+effects as well, each fitted from its two effects' best fits alone (``*_with_pairs``: a
+verdict of two effects is one the diagnosis may give).  With ``--summary`` (the run's
 ``summary.json``), the outside score is split by each
 (:func:`diagnosis.open_benchmark.outside_ceiling`).
 
     OPENBLAS_NUM_THREADS=1 mpirun -n 2 .venv/bin/python benchmarks/mimicked_outside.py \\
-        --seed 10 --summary open/summary.json --out mimicked.json
+        --seed 10 --pairs --summary open/summary.json --out mimicked.json
 """
 
 from __future__ import annotations
@@ -32,7 +34,14 @@ from visible_beside import recorded_times, stored
 
 from brain_fe.io import write_json_atomic
 from brain_fe.parallel import SharedCounter, dynamic_items
-from diagnosis.open_benchmark import draw_case, mimicked, outside_ceiling, plan
+from diagnosis.open_benchmark import (
+    draw_case,
+    mimicked,
+    mimicked_by,
+    outside_ceiling,
+    plan,
+    singles_of,
+)
 from diagnosis.open_world import closest_library, noise_sd
 
 
@@ -58,6 +67,8 @@ def main() -> None:
     src.add_argument("--seed", type=int, help="draw the outside cases of this seed again")
     ap.add_argument("--cases", type=int, default=122, help="the draw's number of cases "
                     "(with --seed; default 122)")
+    ap.add_argument("--pairs", action="store_true",
+                    help="measure every pair of library effects too (one fit each)")
     ap.add_argument("--summary", help="the run's summary.json: split its outside score")
     ap.add_argument("--out", required=True)
     a = ap.parse_args()
@@ -74,10 +85,14 @@ def main() -> None:
         if made is None:
             continue
         effects, alone, spec, truth, times, sd, rig = made
-        closest = closest_library(spec, truth, times, sd, models, rig=rig)
+        closest = closest_library(spec, truth, times, sd, models, rig=rig, pairs=a.pairs)
+        single = singles_of(closest)
         mine[name] = {"effects": effects, "alone": alone, "closest": closest,
-                      "mimicked": mimicked(closest),
-                      "mimicked_under_rig_noise": mimicked(closest, "rig")}
+                      "mimicked": mimicked(single),
+                      "mimicked_under_rig_noise": mimicked(single, "rig")}
+        if a.pairs:
+            mine[name].update(mimicked_with_pairs=mimicked_by(closest),
+                              mimicked_with_pairs_under_rig_noise=mimicked_by(closest, "rig"))
         logging.getLogger("mimicked").warning(
             "%s %s: alone %s, closest library %s", name, effects, alone,
             {k: round(v, 2) for k, v in closest["rms_left_over_noise"].items()})
@@ -88,11 +103,18 @@ def main() -> None:
                "mimicked": sorted(n for n, r in every.items() if r["mimicked"]),
                "mimicked_under_rig_noise": sorted(
                    n for n, r in every.items() if r["mimicked_under_rig_noise"])}
+        if a.pairs:
+            for key in ("mimicked_with_pairs", "mimicked_with_pairs_under_rig_noise"):
+                out[key] = {n: r[key] for n, r in sorted(every.items()) if r[key]}
         if a.summary:
             by_case = json.loads(Path(a.summary).read_text())["by_case"]
             closest = {n: r["closest"] for n, r in every.items()}
-            out["score"] = outside_ceiling(by_case, closest)
-            out["score_under_rig_noise"] = outside_ceiling(by_case, closest, "rig")
+            out["score"] = outside_ceiling(by_case, closest, pairs=False)
+            out["score_under_rig_noise"] = outside_ceiling(by_case, closest, "rig", pairs=False)
+            if a.pairs:
+                out["score_with_pairs"] = outside_ceiling(by_case, closest)
+                out["score_with_pairs_under_rig_noise"] = outside_ceiling(by_case, closest,
+                                                                          "rig")
         write_json_atomic(Path(a.out), out, indent=1, default=str)
 
 

@@ -268,42 +268,64 @@ def separable(label: dict) -> bool | None:
 
 def mimicked(closest: dict, under: str = "white") -> bool | None:
     """Whether a library effect mimics an outside one in its case's tests: ``closest``
-    (:func:`diagnosis.open_world.closest_library`) holds an effect whose best fit leaves
-    the noiseless recordings less than even the most favourable test of a systematic
-    misfit, one parameter, needs (:func:`diagnosis.selection.chi2_needed` (1, 1, n), n
-    recorded values).  ``under``: the noise that test faces: ``white``, white noise at the
-    rig's SD (the misfit's size n r^2, r the RMS left in noise SDs: the outside rule of
-    ``benchmarks/oracle_open.py``), or ``rig``, the rig's whole noise, its wander, filter
-    and drift included (``chi2_under_rig_noise``, :func:`diagnosis.open_world.misfit_chi2`),
-    which a misfit as slow as they are hides in.  Then the recordings cannot show that
-    anything outside the library is at work, and `unexplained` is out of any rule's
-    reach.  None when nothing was measured."""
+    (:func:`diagnosis.open_world.closest_library`) holds an effect (or, where measured, a
+    pair of them) whose best fit leaves the noiseless recordings less than even the most
+    favourable test of a systematic misfit, one parameter, needs
+    (:func:`diagnosis.selection.chi2_needed` (1, 1, n), n recorded values).  ``under``:
+    the noise that test faces: ``white``, white noise at the rig's SD (the misfit's size
+    n r^2, r the RMS left in noise SDs: the outside rule of ``benchmarks/oracle_open.py``),
+    or ``rig``, the rig's whole noise, its wander, filter and drift included
+    (``chi2_under_rig_noise``, :func:`diagnosis.open_world.misfit_chi2`), which a misfit as
+    slow as they are hides in.  Then the recordings cannot show that anything outside the
+    library is at work, and `unexplained` is out of any rule's reach.  None when nothing
+    was measured."""
+    by = mimicked_by(closest, under)
+    return None if by is None else bool(by)
+
+
+def mimicked_by(closest: dict, under: str = "white") -> str | None:
+    """The library effect or pair (``a+b``) that leaves the least of ``closest`` when that
+    is below the bar of :func:`mimicked`, ``""`` when none is, None when nothing was
+    measured."""
     closest = closest or {}
     n = int(closest.get("points") or 0)
     if under == "white":
-        sizes = [n * float(v) ** 2 for v in (closest.get("rms_left_over_noise") or {}).values()]
+        sizes = {k: n * float(v) ** 2
+                 for k, v in (closest.get("rms_left_over_noise") or {}).items()}
     elif under == "rig":
-        sizes = [float(v) for v in (closest.get("chi2_under_rig_noise") or {}).values()]
+        sizes = {k: float(v) for k, v in (closest.get("chi2_under_rig_noise") or {}).items()}
     else:
         raise ValueError(f"under: 'white' or 'rig', not {under!r}")
-    sizes = [v for v in sizes if np.isfinite(v)]
+    sizes = {k: v for k, v in sizes.items() if np.isfinite(v)}
     if not sizes or n <= 0:
         return None
-    return bool(min(sizes) < chi2_needed(1, 1, n))
+    least = min(sizes, key=sizes.get)
+    return least if sizes[least] < chi2_needed(1, 1, n) else ""
 
 
-def outside_ceiling(by_case: list, closest: dict, under: str = "white") -> dict:
+def singles_of(closest: dict) -> dict:
+    """``closest`` (:func:`diagnosis.open_world.closest_library`) without its pairs."""
+    return {k: ({e: v for e, v in closest[k].items() if "+" not in e}
+                if isinstance(closest[k], dict) else closest[k])
+            for k in closest if k != "pairs"}
+
+
+def outside_ceiling(by_case: list, closest: dict, under: str = "white",
+                    pairs: bool = True) -> dict:
     """The outside cases of a scored run (``by_case`` of its summary) split by whether a
     library effect mimics them (``closest``: case -> :func:`diagnosis.open_world.
-    closest_library`; ``under``: the noise of :func:`mimicked`): the right answer
-    `unexplained` is out of any diagnosis's reach on a mimicked case, so the score of the
-    rest is what the diagnosis can be held to."""
+    closest_library`; ``under``: the noise of :func:`mimicked`; ``pairs``: whether the
+    pairs measured count as well, :func:`singles_of`): the right answer `unexplained` is
+    out of any diagnosis's reach on a mimicked case, so the score of the rest is what the
+    diagnosis can be held to.  ``mimicked_by``: the effect or pair of each."""
     rows = [r for r in by_case if r["kind"] == "outside" and r["case"] in closest]
-    flags = {r["case"]: mimicked(closest[r["case"]], under) for r in rows}
-    free = [r for r in rows if flags[r["case"]] is False]
-    mim = [r for r in rows if flags[r["case"]]]
-    return {"measured": sum(f is not None for f in flags.values()),
+    by = {r["case"]: mimicked_by(closest[r["case"]] if pairs
+                                 else singles_of(closest[r["case"]]), under) for r in rows}
+    free = [r for r in rows if by[r["case"]] == ""]
+    mim = [r for r in rows if by[r["case"]]]
+    return {"measured": sum(f is not None for f in by.values()),
             "mimicked": sorted(r["case"] for r in mim),
+            "mimicked_by": {r["case"]: by[r["case"]] for r in mim},
             "mimicked_correct": sum(bool(r["correct"]) for r in mim),
             "not_mimicked": len(free),
             "not_mimicked_correct": sum(bool(r["correct"]) for r in free),

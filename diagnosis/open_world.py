@@ -76,9 +76,9 @@ from simulators.fe import FESimulator
 
 from .benchmark import MAX_SIZE, effect_values
 from .effects import library, parameter_names
-from .fitting import fit
+from .fitting import Fit, fit
 from .noise import ChannelNoise, NoiseModel
-from .selection import Union
+from .selection import Union, compatible
 from .series import groups
 
 log = logging.getLogger(__name__)
@@ -432,6 +432,12 @@ def residual_left(spec, truth, times, noise_sd_ch, models, beside: tuple = (),
                   start: dict | None = None, obs: pd.DataFrame | None = None) -> np.ndarray:
     """The residual (in noise SDs, one entry per recorded value) of :func:`misfit_left`;
     ``obs``: the truth's :func:`clean_observations` when several fits share them."""
+    return fit_left(spec, truth, times, noise_sd_ch, models, beside, start, obs).z
+
+
+def fit_left(spec, truth, times, noise_sd_ch, models, beside: tuple = (),
+             start: dict | None = None, obs: pd.DataFrame | None = None) -> Fit:
+    """The best fit of :func:`residual_left` itself (its values start another fit)."""
     if obs is None:
         obs = clean_observations(spec, truth, times, models)
     sim = FESimulator(obs, spec.radius_mm, spec.height_mm, refinement=CALIBRATION_REFINEMENT,
@@ -442,9 +448,8 @@ def residual_left(spec, truth, times, noise_sd_ch, models, beside: tuple = (),
     names = parameter_names(lib, beside)
     given = {Param.parse(k): v for k, v in (start or {}).items()}
     start = {k: given[k] if k in given else truth.values[k] for k in names}
-    f = fit(sim, obs, sigma, start, names, max_nfev=30, effect="+".join(beside) or "base",
-            effect_def=Union(lib, beside) if beside else None)
-    return np.asarray(f.z, float)
+    return fit(sim, obs, sigma, start, names, max_nfev=30, effect="+".join(beside) or "base",
+               effect_def=Union(lib, beside) if beside else None)
 
 
 def _model_geometry(models, spec):
@@ -500,7 +505,8 @@ def visible_beside(effects: list, spec, truth: Truth, times, sd, models) -> dict
     return out
 
 
-def closest_library(spec, truth: Truth, times, sd, models, effects=None, rig=None) -> dict:
+def closest_library(spec, truth: Truth, times, sd, models, effects=None, rig=None,
+                    pairs: bool = False) -> dict:
     """How near the library comes to a truth: per library effect (``effects``, default
     every one of the cylinder's library) the misfit (noise SDs, RMS) the truth leaves to
     the best base model with that effect alone, on the working mesh (:func:`misfit_left`,
@@ -509,30 +515,56 @@ def closest_library(spec, truth: Truth, times, sd, models, effects=None, rig=Non
     (``points``): what :func:`diagnosis.open_benchmark.mimicked` judges.  With ``rig``
     (channel -> the rig's :class:`RigNoise`, or its fields), also that misfit's size under
     the rig's whole noise (``chi2_under_rig_noise``: :func:`misfit_chi2`, what the best
-    test aimed at it sees when wander, filter and drift are part of the noise).  The cost,
-    about ten fits per case, keeps it out of the generator:
+    test aimed at it sees when wander, filter and drift are part of the noise).  With
+    ``pairs``, every combination of two of those effects too (key ``a+b``, the names
+    sorted; ``pairs`` True in the result), fitted once from both effects' best fits alone
+    (the base parameters of the closer one; never above the closer one alone, which the
+    pair nests): a verdict of two effects is one the
+    diagnosis may give, so a pair that follows the truth mimics it as well.  The cost,
+    about ten fits per case (and one per pair), keeps it out of the generator:
     ``benchmarks/mimicked_outside.py`` measures it for a draw's outside cases."""
     lib = library("fe")
     obs = clean_observations(spec, truth, times, models)  # the truth, solved once
     sigma = obs["channel"].map(sd).to_numpy(float)
-    rms, chi2 = {}, {}
-    for e in lib if effects is None else effects:
+    rms, chi2, best_fit = {}, {}, {}
+
+    def keep(key: str, f: Fit | None) -> None:
+        rms[key] = math.nan if f is None else float(np.sqrt(np.mean(np.square(f.z))))
+        if rig is not None:
+            chi2[key] = math.nan if f is None else misfit_chi2(obs, f.z * sigma, rig)
+
+    singles = list(lib if effects is None else effects)
+    for e in singles:
         left = []
         for s in lib[e].starts:
             try:
-                z = residual_left(spec, truth, times, sd, models, beside=(e,),
-                                  start={str(k): v for k, v in s.items()}, obs=obs)
+                left.append(fit_left(spec, truth, times, sd, models, beside=(e,),
+                                     start={str(k): v for k, v in s.items()}, obs=obs))
             except (RuntimeError, ValueError) as exc:  # not solved from this start
                 log.warning("closest library effect %s: a start not solved (%s)", e, exc)
+        best_fit[e] = min(left, key=lambda f: f.chi2) if left else None
+        keep(e, best_fit[e])
+    for i, a in enumerate(singles):
+        for b in singles[i + 1:] if pairs else ():
+            fa, fb = best_fit[a], best_fit[b]
+            if not compatible(a, [b]) or fa is None or fb is None:
                 continue
-            left.append((float(np.sqrt(np.mean(z**2))), z))
-        best = min(left, key=lambda x: x[0]) if left else (math.nan, None)
-        rms[e] = best[0]
-        if rig is not None:
-            chi2[e] = math.nan if best[1] is None else misfit_chi2(obs, best[1] * sigma, rig)
+            near, far = (fa, fb) if fa.chi2 <= fb.chi2 else (fb, fa)
+            start = {str(k): v for k, v in {**far.values, **near.values}.items()}
+            try:
+                f = fit_left(spec, truth, times, sd, models, beside=tuple(sorted((a, b))),
+                             start=start, obs=obs)
+            except (RuntimeError, ValueError) as exc:
+                log.warning("closest library pair %s+%s: not solved (%s)", a, b, exc)
+                f = None
+            # the pair nests the closer effect alone (the other at its neutral value): a
+            # fit that stopped short of it is not what the pair can do
+            keep("+".join(sorted((a, b))), near if f is None or f.chi2 > near.chi2 else f)
     out = {"rms_left_over_noise": rms, "points": len(obs)}
     if rig is not None:
         out["chi2_under_rig_noise"] = chi2
+    if pairs:
+        out["pairs"] = True
     return out
 
 

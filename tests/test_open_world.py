@@ -868,9 +868,42 @@ def test_an_outside_effect_a_library_effect_follows_is_mimicked():
                {"case": "c", "kind": "outside", "correct": False},
                {"case": "d", "kind": "single", "correct": True}]
     split = outside_ceiling(by_case, {"a": at(0.1), "b": at(3.0), "c": at(2.0), "d": at(0.1)})
-    assert split == {"measured": 3, "mimicked": ["a"], "mimicked_correct": 0,
-                     "not_mimicked": 2, "not_mimicked_correct": 1,
+    assert split == {"measured": 3, "mimicked": ["a"], "mimicked_by": {"a": "ogden_2term"},
+                     "mimicked_correct": 0, "not_mimicked": 2, "not_mimicked_correct": 1,
                      "not_mimicked_wrong": ["c"]}
+
+
+def test_a_pair_of_library_effects_that_follows_a_truth_mimics_it():
+    """closest_library(pairs=True): every pair fitted from its two effects' best fits
+    alone.  A truth with a compressibility (nu0 = 0.40) and a relaxation (beta_0 = 0.6,
+    tau_0 = 10 s, between the relaxation's two start values): each effect alone leaves
+    more than 10 noise SD (RMS) on this one-cycle specimen, the pair of the truth's own
+    families nothing up to the fits' tolerance (bound 0.1 noise SD, as the single-effect
+    test): the pair mimics it, and no single effect does (mimicked_by, singles_of).  A
+    pair's record is never above its closer effect alone (the pair nests it); the split of
+    a run's outside score names the pair, and counts it only with ``pairs``."""
+    from brain_fe.parameters import Param
+    from diagnosis.open_benchmark import mimicked, mimicked_by, outside_ceiling, singles_of
+    from diagnosis.open_world import Specimen, Truth, closest_library
+
+    spec = Specimen(4.0, 5.0, 0.15, (0.3,), 1, 0.03, 0.01)
+    rng = np.random.default_rng(0)
+    times = [record_times(spec, p, rng) for p in spec.protocols()]
+    truth = Truth({Param("mu", 0): 1.0, Param("alpha", 0): -15.0, Param("nu0"): 0.40,
+                   Param.parse("beta_0"): 0.6, Param.parse("log10_tau_0"): 1.0})
+    sd = {"stress": 0.01, "torque": 0.1, "axial_force": 0.02}
+    closest = closest_library(spec, truth, times, sd, {}, pairs=True,
+                              effects=("compressibility", "viscoelastic"))
+    rms = closest["rms_left_over_noise"]
+    assert closest["pairs"] is True
+    assert rms["compressibility"] > 10.0 and rms["viscoelastic"] > 10.0
+    assert rms["compressibility+viscoelastic"] < 0.1
+    assert mimicked_by(closest) == "compressibility+viscoelastic"
+    assert mimicked_by(singles_of(closest)) == "" and mimicked(singles_of(closest)) is False
+    by_case = [{"case": "a", "kind": "outside", "correct": False}]
+    assert outside_ceiling(by_case, {"a": closest})["mimicked_by"] == {
+        "a": "compressibility+viscoelastic"}
+    assert outside_ceiling(by_case, {"a": closest}, pairs=False)["not_mimicked_wrong"] == ["a"]
 
 
 def test_a_misfit_under_the_rigs_whole_noise_matches_closed_forms():
