@@ -111,6 +111,29 @@ SEPARATING_TEST = {
     frozenset({"artefacts", "imperfect_gluing"}): "a re-zeroed repeat test",
 }
 
+# Physics outside the library that a library effect has stood in for on the open
+# benchmark's outside cases (named in the verdict of one of them on the draws whose
+# outside cases were measured: BENCHMARKS.md, "Outside cases a library effect mimics";
+# tests/test_open_world.py holds the table to those results), with the test that tells
+# them apart: named effect -> ((what, test), ...); the key of each in OUTSIDE_KIND
+DRIFT = ("the tissue's stiffness drifting over the session (it degrades)",
+         "the first test repeated at the end of the session: a drift changes it, the "
+         "library's effects do not")
+SET = ("a permanent set (the unloaded specimen shorter, or twisted, after each excursion)",
+       "a hold at zero load after the last cycle, with the contact point found again: a "
+       "relaxation recovers, a set stays")
+FIBRES = ("a fibre family along the specimen axis, stiff in tension only",
+          "compression/tension of a second specimen cut across the first: an isotropic law "
+          "gives it the same curve, a fibre family does not")
+LOOKALIKES = {
+    "ogden_2term": (FIBRES,),
+    "viscoelastic": (SET,),
+    "artefacts": (FIBRES, DRIFT),
+    "imperfect_gluing": (DRIFT, FIBRES),
+    "compressibility": (DRIFT, SET, FIBRES),
+}
+OUTSIDE_KIND = {FIBRES: "axial_fibres", DRIFT: "stiffness_drift", SET: "permanent_set"}
+
 
 def separating_test(a: str, b: str) -> str:
     """The test that would tell ``a`` from ``b``: the table's, else the lateral expansion

@@ -60,6 +60,7 @@ from .notes import (
     contact_event_notes,
     contact_notes,
     edge_notes,
+    lookalike_notes,
     noise_doubt,
     offset_doubt,
     one_kind_doubt,
@@ -418,6 +419,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         notes.append(f"incomplete: {len(errors)} evaluation(s) failed for a reason other "
                      f"than the model ({'; '.join(errors[:3])}); what they concern was left "
                      "out, so the verdict may miss what it would have shown")
+    notes += lookalike_notes(chosen, status)
     notes += edge_notes(base, current)
     lift_off = resolve(getattr(sim, "ends", "glued"))[1]
     notes += contact_notes(obs, base, current, sd, lift_off=lift_off)

@@ -13,6 +13,8 @@
   model of the fit without it (with the rig's drift) calls noise;
 * :func:`offset_doubt`: offsets named with a gain that a rig's slow noise, which the noise
   model of a short series sees only in part, could make;
+* :func:`lookalike_notes`: physics outside the library that a named effect has stood in
+  for (:data:`diagnosis.effects.LOOKALIKES`), with the test that tells them apart;
 * :func:`edge_notes`: fits that stopped where the model could not be solved;
 * :func:`contact_notes`, :func:`contact_event_notes`: points recorded off the specimen,
   and where the model lets go of it (lift-off) against where the recordings say.
@@ -26,6 +28,7 @@ import numpy as np
 
 from brain_fe.parameters import Parameters
 
+from .effects import LOOKALIKES
 from .fitting import Fit
 from .noise import ChannelNoise, NoiseModel, longest_correlation_s, time_scales
 from .remaining import shear_rows
@@ -168,6 +171,25 @@ def one_kind_doubt(named: list, obs, fit: Fit | None = None) -> str:
                 "or another law bends alike; a compression/tension test of the same specimen "
                 "tells them apart")
     return "; ".join(said)
+
+
+def lookalike_notes(named: list, status: str) -> list[str]:
+    """Per physics outside the library that one of the ``named`` effects has stood in for
+    on the open benchmark (:data:`diagnosis.effects.LOOKALIKES`: a second Ogden term for
+    axial fibre families, a relaxation for a permanent set, offsets and a glue layer for a
+    stiffness drifting over the session, ...), a note naming it and the test that tells
+    them apart: what these recordings cannot exclude however well the verdict fits.  None
+    unless something is explained: a verdict of ``none`` or ``unexplained`` names no
+    effect that could stand in for anything."""
+    if status not in ("explained", "partially explained"):
+        return []
+    by: dict = {}
+    for e in named:
+        for look in LOOKALIKES.get(e, ()):
+            by.setdefault(look, []).append(e)
+    return [f"outside the library, {what} has looked like {' and '.join(effects)} on tests "
+            f"like these (the open benchmark's outside cases); {test} tells them apart"
+            for (what, test), effects in by.items()]
 
 
 def slow_doubt(slow: dict) -> str:

@@ -825,6 +825,42 @@ def test_a_named_effect_in_a_near_tie_is_a_cannot_tell():
     assert tie_doubt([tie, other], ["viscoelastic", "ogden_2term"]).count("named, but") == 2
 
 
+def test_the_lookalikes_a_verdict_notes_are_those_the_stored_draws_showed():
+    """diagnosis.effects.LOOKALIKES, the physics outside the library that a note beside a
+    verdict names (diagnosis.notes.lookalike_notes), is the evidence of the stored draws
+    whose outside cases were measured (benchmarks/results/open_world/mimicked-outside/
+    seed10-12, the effects of each case, and the verdicts of the runs' summaries): every
+    (library effect, outside kind) it lists was named in the verdict of an outside case of
+    that kind, and every such naming is listed.  The note: one per outside kind, naming
+    every effect of the verdict it may stand in for; none for `none` or `unexplained`."""
+    from pathlib import Path
+
+    from diagnosis.effects import LOOKALIKES, OUTSIDE_KIND, library
+    from diagnosis.notes import lookalike_notes
+
+    results = Path(__file__).resolve().parents[1] / "benchmarks/results/open_world"
+    runs = {10: "open-world-36-seed10", 11: "open-world-37-seed11", 12: "open-world-37-seed12"}
+    seen = set()
+    for seed, run in runs.items():
+        cases = json.loads((results / f"mimicked-outside/seed{seed}.json").read_text())["cases"]
+        verdicts = {c["case"]: c["verdict"] for c in json.loads(
+            (results / run / "summary.json").read_text())["by_case"]}
+        seen |= {(e, c["effects"][0]) for n, c in cases.items()
+                 for e in verdicts[n].split("+") if e not in ("unexplained", "none")}
+    table = {(e, OUTSIDE_KIND[look]) for e, looks in LOOKALIKES.items() for look in looks}
+    assert table == seen
+    assert set(LOOKALIKES) <= set(library("fe")) and set(OUTSIDE_KIND.values()) == set(OUTSIDE)
+
+    notes = lookalike_notes(["artefacts", "imperfect_gluing"], "explained")
+    assert len(notes) == 2  # fibres and drift, once each
+    drift = next(n for n in notes if "drifting" in n)
+    assert "artefacts and imperfect_gluing" in drift and "repeated at the end" in drift
+    assert lookalike_notes(["ogden_2term"], "partially explained") and \
+        "fibre family" in lookalike_notes(["ogden_2term"], "explained")[0]
+    assert lookalike_notes(["mullins"], "explained") == []
+    assert lookalike_notes([], "none") == lookalike_notes(["viscoelastic"], "unexplained") == []
+
+
 def test_an_outside_effect_a_library_effect_follows_is_mimicked():
     """The generator's rule for outside cases (diagnosis.open_world.closest_library): the
     misfit a truth leaves to the base model with each library effect alone, fitted from
