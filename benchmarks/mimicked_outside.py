@@ -9,7 +9,8 @@ outside one in the specimen's tests, and no diagnosis can tell from the recordin
 something outside the library is at work.  The cases come from a stored run
 (``--benchmark``: its labels and recorded times) or are drawn again from the seed
 (``--seed``: the generator is deterministic, so a draw's outside cases can be measured
-after its case data are gone; only the outside cases are made, no diagnosis is run).
+after its case data are gone; only the outside cases are made, no diagnosis is run), or
+judged again from a file this script wrote (``--rescore``: no fit).
 Two bars: white noise at the rig's SD (optimistic: the most any test could see), and the
 rig's whole noise, wander, filter and drift included (``mimicked_under_rig_noise``: a
 misfit as slow as the rig's wander hides in it).  With ``--pairs``, every pair of library
@@ -60,11 +61,46 @@ def _outside_case(a, name: str, models: dict):
         noise_sd(case.noise), case.noise
 
 
+def judged(closest: dict) -> dict:
+    """One case's flags: mimicked by one effect (white, rig) and, where pairs were
+    measured, the effect or pair that mimics it."""
+    single = singles_of(closest)
+    out = {"mimicked": mimicked(single), "mimicked_under_rig_noise": mimicked(single, "rig")}
+    if closest.get("pairs"):
+        out.update(mimicked_with_pairs=mimicked_by(closest),
+                   mimicked_with_pairs_under_rig_noise=mimicked_by(closest, "rig"))
+    return out
+
+
+def result(every: dict, summary: str | None) -> dict:
+    """The file written: every case, the cases each bar flags and, with the run's
+    ``summary``, its outside score split by each."""
+    pairs = any(r["closest"].get("pairs") for r in every.values())
+    out = {"cases": every,
+           "mimicked": sorted(n for n, r in every.items() if r["mimicked"]),
+           "mimicked_under_rig_noise": sorted(
+               n for n, r in every.items() if r["mimicked_under_rig_noise"])}
+    if pairs:
+        for key in ("mimicked_with_pairs", "mimicked_with_pairs_under_rig_noise"):
+            out[key] = {n: r[key] for n, r in sorted(every.items()) if r.get(key)}
+    if summary:
+        by_case = json.loads(Path(summary).read_text())["by_case"]
+        closest = {n: r["closest"] for n, r in every.items()}
+        out["score"] = outside_ceiling(by_case, closest, pairs=False)
+        out["score_under_rig_noise"] = outside_ceiling(by_case, closest, "rig", pairs=False)
+        if pairs:
+            out["score_with_pairs"] = outside_ceiling(by_case, closest)
+            out["score_with_pairs_under_rig_noise"] = outside_ceiling(by_case, closest, "rig")
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--benchmark", help="a stored open-world run (its labels/ and cases/)")
     src.add_argument("--seed", type=int, help="draw the outside cases of this seed again")
+    src.add_argument("--rescore", help="a file this script wrote: judge its measured cases "
+                     "again (no fit; the flags and scores of the current rules)")
     ap.add_argument("--cases", type=int, default=122, help="the draw's number of cases "
                     "(with --seed; default 122)")
     ap.add_argument("--pairs", action="store_true",
@@ -74,6 +110,12 @@ def main() -> None:
     a = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     comm = MPI.COMM_WORLD
+    if a.rescore:
+        every = json.loads(Path(a.rescore).read_text())["cases"]
+        every = {n: {**r, **judged(r["closest"])} for n, r in every.items()}
+        if comm.rank == 0:
+            write_json_atomic(Path(a.out), result(every, a.summary), indent=1, default=str)
+        return
     if a.benchmark:
         names = sorted(p.stem for p in (Path(a.benchmark) / "labels").glob("world*.json")
                        if json.loads(p.read_text())["kind"] == "outside")
@@ -86,36 +128,15 @@ def main() -> None:
             continue
         effects, alone, spec, truth, times, sd, rig = made
         closest = closest_library(spec, truth, times, sd, models, rig=rig, pairs=a.pairs)
-        single = singles_of(closest)
         mine[name] = {"effects": effects, "alone": alone, "closest": closest,
-                      "mimicked": mimicked(single),
-                      "mimicked_under_rig_noise": mimicked(single, "rig")}
-        if a.pairs:
-            mine[name].update(mimicked_with_pairs=mimicked_by(closest),
-                              mimicked_with_pairs_under_rig_noise=mimicked_by(closest, "rig"))
+                      **judged(closest)}
         logging.getLogger("mimicked").warning(
             "%s %s: alone %s, closest library %s", name, effects, alone,
             {k: round(v, 2) for k, v in closest["rms_left_over_noise"].items()})
     counter.free()
     every = {k: v for part in comm.allgather(mine) for k, v in part.items()}
     if comm.rank == 0:
-        out = {"cases": every,
-               "mimicked": sorted(n for n, r in every.items() if r["mimicked"]),
-               "mimicked_under_rig_noise": sorted(
-                   n for n, r in every.items() if r["mimicked_under_rig_noise"])}
-        if a.pairs:
-            for key in ("mimicked_with_pairs", "mimicked_with_pairs_under_rig_noise"):
-                out[key] = {n: r[key] for n, r in sorted(every.items()) if r[key]}
-        if a.summary:
-            by_case = json.loads(Path(a.summary).read_text())["by_case"]
-            closest = {n: r["closest"] for n, r in every.items()}
-            out["score"] = outside_ceiling(by_case, closest, pairs=False)
-            out["score_under_rig_noise"] = outside_ceiling(by_case, closest, "rig", pairs=False)
-            if a.pairs:
-                out["score_with_pairs"] = outside_ceiling(by_case, closest)
-                out["score_with_pairs_under_rig_noise"] = outside_ceiling(by_case, closest,
-                                                                          "rig")
-        write_json_atomic(Path(a.out), out, indent=1, default=str)
+        write_json_atomic(Path(a.out), result(every, a.summary), indent=1, default=str)
 
 
 if __name__ == "__main__":

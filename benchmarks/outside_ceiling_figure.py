@@ -51,12 +51,16 @@ def bars(files: list[Path]) -> list[dict]:
 
 
 def draw(rows: list[dict], out: Path) -> None:
+    if not rows:
+        raise SystemExit("no bar to draw: the files hold no score (run mimicked_outside.py "
+                         "with --summary)")
     fig, ax = plt.subplots(figsize=(max(6.0, 0.6 * len(rows) + 4.0), 4.4))
     x = range(len(rows))
     m = [r["mimicked"] for r in rows]
     ok = [r["right"] for r in rows]
     miss = [r["missed"] for r in rows]
-    ax.bar(x, m, color="0.7", label="a library effect or pair mimics it")
+    ax.bar(x, m, color="0.7", label="a library effect or pair mimics it\n(no test can show "
+           "it is outside)")
     ax.bar(x, ok, bottom=m, color="tab:green", label="not mimicked, `unexplained`")
     ax.bar(x, miss, bottom=[a + b for a, b in zip(m, ok, strict=True)], color="tab:red",
            label="not mimicked, missed")

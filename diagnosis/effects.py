@@ -117,14 +117,14 @@ SEPARATING_TEST = {
 # tests/test_open_world.py holds the table to those results), with the test that tells
 # them apart: named effect -> ((what, test), ...); the key of each in OUTSIDE_KIND
 DRIFT = ("the tissue's stiffness drifting over the session (it degrades)",
-         "the first test repeated at the end of the session: a drift changes it, the "
-         "library's effects do not")
+         "the first test repeated at the end of the session (a drift changes it, the "
+         "library's effects do not)")
 SET = ("a permanent set (the unloaded specimen shorter, or twisted, after each excursion)",
-       "a hold at zero load after the last cycle, with the contact point found again: a "
-       "relaxation recovers, a set stays")
+       "a hold at zero load after the last cycle, with the contact point found again (a "
+       "relaxation recovers, a set stays)")
 FIBRES = ("a fibre family along the specimen axis, stiff in tension only",
-          "compression/tension of a second specimen cut across the first: an isotropic law "
-          "gives it the same curve, a fibre family does not")
+          "compression/tension of a second specimen cut across the first (an isotropic law "
+          "gives it the same curve, a fibre family does not)")
 LOOKALIKES = {
     "ogden_2term": (FIBRES,),
     "viscoelastic": (SET,),

@@ -187,8 +187,8 @@ def lookalike_notes(named: list, status: str) -> list[str]:
     for e in named:
         for look in LOOKALIKES.get(e, ()):
             by.setdefault(look, []).append(e)
-    return [f"outside the library, {what} has looked like {' and '.join(effects)} on tests "
-            f"like these (the open benchmark's outside cases); {test} tells them apart"
+    return [f"outside the library, {what}, has looked like {' and '.join(effects)} on tests "
+            f"like these (the open benchmark's outside cases); to tell them apart: {test}"
             for (what, test), effects in by.items()]
 
 

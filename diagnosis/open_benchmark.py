@@ -284,9 +284,9 @@ def mimicked(closest: dict, under: str = "white") -> bool | None:
 
 
 def mimicked_by(closest: dict, under: str = "white") -> str | None:
-    """The library effect or pair (``a+b``) that leaves the least of ``closest`` when that
-    is below the bar of :func:`mimicked`, ``""`` when none is, None when nothing was
-    measured."""
+    """The library effect that leaves the least of ``closest`` when that is below the bar
+    of :func:`mimicked`, else the pair (``a+b``) that does, ``""`` when none is, None when
+    nothing was measured: a pair is named only where no effect alone mimics."""
     closest = closest or {}
     n = int(closest.get("points") or 0)
     if under == "white":
@@ -299,12 +299,18 @@ def mimicked_by(closest: dict, under: str = "white") -> str | None:
     sizes = {k: v for k, v in sizes.items() if np.isfinite(v)}
     if not sizes or n <= 0:
         return None
-    least = min(sizes, key=sizes.get)
-    return least if sizes[least] < chi2_needed(1, 1, n) else ""
+    bar = chi2_needed(1, 1, n)
+    for keys in ([k for k in sizes if "+" not in k], list(sizes)):
+        least = min(keys, key=sizes.get, default=None)
+        if least is not None and sizes[least] < bar:
+            return least
+    return ""
 
 
 def singles_of(closest: dict) -> dict:
     """``closest`` (:func:`diagnosis.open_world.closest_library`) without its pairs."""
+    if not closest:
+        return {}
     return {k: ({e: v for e, v in closest[k].items() if "+" not in e}
                 if isinstance(closest[k], dict) else closest[k])
             for k in closest if k != "pairs"}

@@ -519,7 +519,7 @@ def closest_library(spec, truth: Truth, times, sd, models, effects=None, rig=Non
     ``pairs``, every combination of two of those effects too (key ``a+b``, the names
     sorted; ``pairs`` True in the result), fitted once from both effects' best fits alone
     (the base parameters of the closer one; never above the closer one alone, which the
-    pair nests): a verdict of two effects is one the
+    pair nests; none where an effect has no fit alone): a verdict of two effects is one the
     diagnosis may give, so a pair that follows the truth mimics it as well.  The cost,
     about ten fits per case (and one per pair), keeps it out of the generator:
     ``benchmarks/mimicked_outside.py`` measures it for a draw's outside cases."""
@@ -559,7 +559,7 @@ def closest_library(spec, truth: Truth, times, sd, models, effects=None, rig=Non
                 f = None
             # the pair nests the closer effect alone (the other at its neutral value): a
             # fit that stopped short of it is not what the pair can do
-            keep("+".join(sorted((a, b))), near if f is None or f.chi2 > near.chi2 else f)
+            keep("+".join(sorted((a, b))), f if f is not None and f.chi2 <= near.chi2 else near)
     out = {"rms_left_over_noise": rms, "points": len(obs)}
     if rig is not None:
         out["chi2_under_rig_noise"] = chi2

@@ -917,7 +917,8 @@ def test_a_pair_of_library_effects_that_follows_a_truth_mimics_it():
     families nothing up to the fits' tolerance (bound 0.1 noise SD, as the single-effect
     test): the pair mimics it, and no single effect does (mimicked_by, singles_of).  A
     pair's record is never above its closer effect alone (the pair nests it); the split of
-    a run's outside score names the pair, and counts it only with ``pairs``."""
+    a run's outside score names the pair, and counts it only with ``pairs``; a pair is
+    named only where no effect alone mimics."""
     from brain_fe.parameters import Param
     from diagnosis.open_benchmark import mimicked, mimicked_by, outside_ceiling, singles_of
     from diagnosis.open_world import Specimen, Truth, closest_library
@@ -940,6 +941,13 @@ def test_a_pair_of_library_effects_that_follows_a_truth_mimics_it():
     assert outside_ceiling(by_case, {"a": closest})["mimicked_by"] == {
         "a": "compressibility+viscoelastic"}
     assert outside_ceiling(by_case, {"a": closest}, pairs=False)["not_mimicked_wrong"] == ["a"]
+    # a pair is named only where no effect alone mimics (the least of 400 points' bar,
+    # 15.99, is 400 r^2: r = 0.1 gives 4, r = 0.15 gives 9)
+    both = {"points": 400, "rms_left_over_noise": {"ogden_2term": 0.15, "a+b": 0.1}}
+    assert mimicked_by(both) == "ogden_2term"
+    assert mimicked_by({**both, "rms_left_over_noise": {"ogden_2term": 1.0, "a+b": 0.1}}) \
+        == "a+b"
+    assert singles_of(None) == {}
 
 
 def test_a_misfit_under_the_rigs_whole_noise_matches_closed_forms():
