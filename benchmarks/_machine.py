@@ -1,4 +1,5 @@
-"""What the benchmarks report about the machine they ran on."""
+"""What the benchmarks report about the machine they ran on, and how a benchmark script
+reads its inputs and ends on bad ones."""
 
 from __future__ import annotations
 
@@ -7,7 +8,11 @@ import json
 import os
 import platform
 import statistics
+import sys
 import time
+from pathlib import Path
+
+from brainmech.errors import abort_other_ranks, one_line
 
 
 def cpu_model() -> str:
@@ -53,3 +58,37 @@ def median_per_call(call, n: int, repeats: int) -> float:
             call()
         times.append((time.perf_counter() - t0) / n)
     return statistics.median(times)
+
+
+def read_json(path, *needs: str):
+    """A JSON input file; a malformed one, or one without a top-level field in ``needs``,
+    is a ValueError naming the file (and the line and column)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: line {exc.lineno} column {exc.colno}: {exc.msg}") \
+            from None
+    missing = [k for k in needs if not isinstance(data, dict) or k not in data]
+    if missing:
+        raise ValueError(f"{path}: no field {missing[0]!r}")
+    return data
+
+
+def run_script(main) -> None:
+    """Run a script's ``main()`` and exit with its code.  Bad input (a missing or
+    unreadable file, malformed JSON, a value out of range, a field an input lacks) ends
+    the script with one line on stderr and exit status 1, without a traceback; under
+    ``mpirun``, a file error of one rank ends the others too (they would wait for it)."""
+    name = Path(sys.argv[0]).name
+    try:
+        code = main()
+    except (OSError, ValueError, KeyError) as exc:
+        msg = f"a field is missing: {exc}" if isinstance(exc, KeyError) else one_line(exc)
+        sys.stderr.write(f"{name}: error: {msg}\n")
+        if isinstance(exc, OSError):
+            abort_other_ranks(1)
+        code = 1
+    except KeyboardInterrupt:
+        sys.stderr.write(f"{name}: interrupted\n")
+        code = 130
+    sys.exit(code or 0)

@@ -25,7 +25,7 @@ import sys
 import tempfile
 import time
 
-from _machine import cpu_model
+from _machine import cpu_model, run_script
 
 COMPILE_SNIPPET = """
 import time, json, sys
@@ -124,4 +124,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -17,7 +17,7 @@ largest value.
 from __future__ import annotations
 
 import numpy as np
-from _machine import median_per_call, micro_arguments, write_result
+from _machine import median_per_call, micro_arguments, run_script, write_result
 
 DEFAULT_FLAGS = ["-O2", "-g0"]  # DOLFINx's default cffi_extra_compile_args
 MATERIALS = {"maxwell": {"maxwell": 1}, "mullins": {"mullins": True},
@@ -92,4 +92,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

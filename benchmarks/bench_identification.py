@@ -22,7 +22,7 @@ import warnings
 
 import numpy as np
 import pandas as pd
-from _machine import cpu_model
+from _machine import cpu_model, run_script
 from scipy.optimize import minimize
 
 TRUTH = [(0.8, -18.0), (2.0, -8.0), (0.4, -30.0), (1.2, -25.0)]
@@ -102,4 +102,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

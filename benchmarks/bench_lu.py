@@ -22,7 +22,7 @@ import statistics
 import time
 
 import numpy as np
-from _machine import median_per_call, micro_arguments, write_result
+from _machine import median_per_call, micro_arguments, run_script, write_result
 
 SOLVERS = [("mumps", None), ("petsc", "nd"), ("petsc", "rcm"), ("petsc", "qmd"),
            ("umfpack", None)]
@@ -121,4 +121,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

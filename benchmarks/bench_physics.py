@@ -24,7 +24,7 @@ import platform
 import statistics
 import time
 
-from _machine import cpu_model
+from _machine import cpu_model, run_script
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -139,4 +139,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

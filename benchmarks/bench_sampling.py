@@ -25,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _machine import cpu_model
+from _machine import cpu_model, read_json, run_script
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "sampling.md"
@@ -64,7 +64,7 @@ def run_once(k: int, n: int, seed: int, tmp: Path) -> dict:
     t0 = time.perf_counter()
     subprocess.run(cmd, env=_env(), check=True)
     wall = time.perf_counter() - t0
-    res = json.loads(Path(str(out) + ".json").read_text())
+    res = read_json(Path(str(out) + ".json"))
     shutil.rmtree(out)
     res["wall_s"] = wall
     res["load"] = load
@@ -158,4 +158,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -17,6 +17,7 @@ import statistics
 import time
 
 import numpy as np
+from _machine import run_script
 
 
 def main():
@@ -68,4 +69,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -18,13 +18,14 @@ first cases; an engine that does more in some cases slows those.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 from pathlib import Path
 
+from _machine import read_json, run_script
+
 
 def by_case(path: Path) -> dict:
-    return {c["case"]: c for c in json.loads(path.read_text())["by_case"]}
+    return {c["case"]: c for c in read_json(path)["by_case"]}
 
 
 def main() -> None:
@@ -112,4 +113,4 @@ def timing(old: dict, new: dict, cases: list) -> list[str]:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

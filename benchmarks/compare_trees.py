@@ -31,6 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _machine import read_json, run_script
+
 HERE = Path(__file__).resolve().parent
 NEW = HERE.parent
 
@@ -96,7 +98,7 @@ def diagnose(tree: Path, data: Path, ranks: int) -> float:
     t0 = time.perf_counter()
     subprocess.run(cmd, env=_env(tree), capture_output=True, text=True, check=True, cwd=tree)
     wall = time.perf_counter() - t0
-    res = json.loads((out / "d" / "diagnosis.json").read_text())
+    res = read_json(out / "d" / "diagnosis.json")
     STAGES.setdefault(str(tree), []).append(res.get("timings_s"))  # where the time went
     return wall, res["verdict"]
 
@@ -148,4 +150,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 import pandas as pd
+from _machine import run_script
 
 from brain_fe import geometry
 from brain_fe.materials import MaterialParameters
@@ -109,4 +110,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -25,6 +25,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+from _machine import run_script
 
 HERE = Path(__file__).resolve().parent
 
@@ -98,4 +99,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -33,6 +33,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _machine import read_json, run_script
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 
@@ -161,7 +163,7 @@ pd.concat(specs).to_csv("{work}/spec.csv", index=False)
 def _verdicts(d: Path) -> dict:
     out = {}
     for p in sorted(d.glob("*/diagnosis.json")):
-        out[p.parent.name] = json.loads(p.read_text())["verdict"]
+        out[p.parent.name] = read_json(p)["verdict"]
     return out
 
 
@@ -220,4 +222,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

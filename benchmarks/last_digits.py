@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import random
 import sys
 from pathlib import Path
+
+from _machine import read_json, run_script
 
 from diagnosis.determinacy import RELATIVE_SD  # the size `diagnose --check-digits` uses
 
@@ -67,7 +68,7 @@ def perturb(src: Path, dst: Path, seed: int = 1) -> int:
 
 
 def _load(folder: Path) -> dict:
-    return {str(f.parent.relative_to(folder)): json.loads(f.read_text())
+    return {str(f.parent.relative_to(folder)): read_json(f)
             for f in sorted(folder.glob("**/diagnosis.json")) if f.parent != folder}
 
 
@@ -120,4 +121,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_script(main)

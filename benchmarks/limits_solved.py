@@ -29,6 +29,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+from _machine import run_script
 
 from brain_fe.io import write_json_atomic
 from brain_fe.parameters import Param
@@ -100,4 +101,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -26,10 +26,10 @@ verdict of two effects is one the diagnosis may give).  With ``--summary`` (the 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
+from _machine import read_json, run_script
 from mpi4py import MPI
 from visible_beside import recorded_times, stored
 
@@ -84,7 +84,7 @@ def result(every: dict, summary: str | None) -> dict:
         for key in ("mimicked_with_pairs", "mimicked_with_pairs_under_rig_noise"):
             out[key] = {n: r[key] for n, r in sorted(every.items()) if r.get(key)}
     if summary:
-        by_case = json.loads(Path(summary).read_text())["by_case"]
+        by_case = read_json(Path(summary))["by_case"]
         closest = {n: r["closest"] for n, r in every.items()}
         out["score"] = outside_ceiling(by_case, closest, pairs=False)
         out["score_under_rig_noise"] = outside_ceiling(by_case, closest, "rig", pairs=False)
@@ -111,14 +111,14 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     comm = MPI.COMM_WORLD
     if a.rescore:
-        every = json.loads(Path(a.rescore).read_text())["cases"]
+        every = read_json(a.rescore, "cases")["cases"]
         every = {n: {**r, **judged(r["closest"])} for n, r in every.items()}
         if comm.rank == 0:
             write_json_atomic(Path(a.out), result(every, a.summary), indent=1, default=str)
         return
     if a.benchmark:
         names = sorted(p.stem for p in (Path(a.benchmark) / "labels").glob("world*.json")
-                       if json.loads(p.read_text())["kind"] == "outside")
+                       if read_json(p)["kind"] == "outside")
     else:
         names = [f"world{i:03d}" for i in range(a.cases) if plan(i, a.seed)[0] == "outside"]
     counter, mine, models = SharedCounter(comm), {}, {}
@@ -140,4 +140,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import scipy.linalg as sl
+from _machine import run_script
 from scipy.optimize import minimize
 
 from brain_fe.io import write_text_atomic
@@ -173,4 +174,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

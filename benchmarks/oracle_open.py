@@ -31,10 +31,10 @@ and every outside effect called ``explained``.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
+from _machine import read_json, run_script
 from mpi4py import MPI
 from rediagnose_open import _case  # this folder is on the path when run as a script
 from visible_beside import stored
@@ -53,7 +53,7 @@ ALPHA, BIC_MARGIN = 1e-3, 10.0  # the diagnosis's defaults (diagnosis.engine.dia
 
 def _load(src: Path, results: Path, name: str):
     lab, obs = _case(src, name)
-    return lab, obs, json.loads((results / f"{name}_result.json").read_text())
+    return lab, obs, read_json(results / f"{name}_result.json")
 
 
 def missed_one(lab: dict, res: dict) -> bool:
@@ -69,8 +69,8 @@ def missed_subsets(src: Path, results: Path) -> list[str]:
     out = []
     for p in sorted(results.glob("*_result.json")):
         name = p.name.removesuffix("_result.json")
-        lab = json.loads((src / "labels" / f"{name}.json").read_text())
-        if missed_one(lab, json.loads(p.read_text())):
+        lab = read_json(src / "labels" / f"{name}.json")
+        if missed_one(lab, read_json(p)):
             out.append(name)
     return out
 
@@ -78,8 +78,8 @@ def missed_subsets(src: Path, results: Path) -> list[str]:
 def missed_outside(src: Path, results: Path) -> list[str]:
     """Outside effects whose verdict says ``explained``."""
     return [p.name.removesuffix("_result.json") for p in sorted(results.glob("*_result.json"))
-            if json.loads((src / "labels" / p.name.replace("_result", "")).read_text())
-            ["kind"] == "outside" and json.loads(p.read_text()).get("status") == "explained"]
+            if read_json(src / "labels" / p.name.replace("_result", ""))
+            ["kind"] == "outside" and read_json(p).get("status") == "explained"]
 
 
 def outside_oracle(src: Path, name: str, res: dict, n: int) -> dict:
@@ -177,4 +177,4 @@ def _one(src: Path, name: str, lab: dict, obs, res: dict) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -15,7 +15,6 @@ of the outside cases).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import re
 from pathlib import Path
@@ -24,6 +23,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from _machine import read_json, run_script  # noqa: E402
 
 from brain_fe.io import write_figure_atomic  # noqa: E402
 
@@ -38,7 +38,7 @@ def bars(files: list[Path]) -> list[dict]:
     """One row per (draw, bar) that a file holds: its label and the three counts."""
     rows = []
     for f in sorted(files, key=lambda p: int(re.sub(r"\D", "", p.stem) or 0)):
-        d = json.loads(f.read_text())
+        d = read_json(f)
         for key, what in BARS:
             s = d.get(key)
             if not s:
@@ -94,4 +94,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

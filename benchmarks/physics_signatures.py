@@ -26,6 +26,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _machine import run_script
 
 from brain_fe import geometry  # noqa: E402
 from brain_fe.artefacts import Artefacts  # noqa: E402
@@ -215,4 +216,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -24,13 +24,13 @@ short series keep out can move no other case; N = 12 took 58, 50 and 63 cases of
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 import types
 from pathlib import Path
 
 import numpy as np
+from _machine import read_json, run_script
 from mpi4py import MPI
 
 from brain_fe.io import write_json_atomic, write_text_atomic
@@ -45,7 +45,7 @@ from recordings.tables import read_recordings, read_specimens
 
 
 def _case(src: Path, name: str):
-    lab = json.loads((src / "labels" / f"{name}.json").read_text())
+    lab = read_json(src / "labels" / f"{name}.json")
     spec = read_specimens(src / "cases" / f"{name}_specimens.csv")
     obs = observations(read_recordings(src / "cases" / f"{name}_recordings.csv", spec))
     return lab, obs
@@ -110,7 +110,7 @@ def main() -> None:
         res["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, res, lab["noise"],
                                                                lab.get("noise_rms"))
         write_json_atomic(out / f"{name}_result.json", res, indent=1, default=str)
-        old = json.loads((src / "cases" / f"{name}_result.json").read_text())
+        old = read_json(src / "cases" / f"{name}_result.json")
         logging.getLogger("rediagnose").warning(
             "%s %s (%s): stored %s (%s) -> now %s (%s), %.0f s", name, lab["kind"],
             lab["expected"], old["verdict"], old["status"], res["verdict"], res["status"],
@@ -123,8 +123,8 @@ def main() -> None:
     for n in names:
         lab, obs = _case(src, n)
         labels[n] = lab
-        new[n] = json.loads((out / f"{n}_result.json").read_text())
-        o = json.loads((src / "cases" / f"{n}_result.json").read_text())
+        new[n] = read_json(out / f"{n}_result.json")
+        o = read_json(src / "cases" / f"{n}_result.json")
         o["rms_after_over_true_noise"] = _rms_over_rig_noise(obs, o, lab["noise"],
                                                              lab.get("noise_rms"))
         old[n] = o
@@ -146,4 +146,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -18,11 +18,11 @@ fitting time they took.  Reads ``*_result.json`` and the ``*_recordings.csv`` be
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 
 import pandas as pd
+from _machine import read_json, run_script
 
 from brain_fe.io import write_json_atomic
 from diagnosis.selection import SCREEN_FRACTION, chi2_needed
@@ -34,7 +34,7 @@ def fits(folder: Path) -> list[dict]:
     """One row per fitted candidate of every round of every diagnosis in ``folder``."""
     rows = []
     for res in sorted(folder.glob("*_result.json")):
-        d = json.loads(res.read_text())
+        d = read_json(res)
         n = len(pd.read_csv(res.with_name(res.name.replace("_result.json",
                                                            "_recordings.csv"))))
         timing = d.get("timings_s", {}).get("rounds", [])
@@ -95,4 +95,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -26,13 +26,13 @@ within the noise.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from _machine import read_json, run_script
 from visible_beside import stored
 
 from brain_fe.io import write_json_atomic
@@ -91,7 +91,7 @@ def study(src: Path, name: str) -> dict:
     lab, spec, truth, _ = stored(src, name)
     obs = observations(pd.read_csv(src / "cases" / f"{name}_recordings.csv"))
     obs = obs.reset_index(drop=True)
-    refinement = json.loads((src / "config.json").read_text()).get("refinement", 1)
+    refinement = read_json(src / "config.json").get("refinement", 1)
     sim = FESimulator(obs, spec.radius_mm, spec.height_mm, refinement=refinement)
     fine = FESimulator(obs, spec.radius_mm, spec.height_mm, refinement=refinement + 1)
     d = diagnose(sim, obs, fine_sim=fine)  # sets sim.correction as the engine does
@@ -137,4 +137,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

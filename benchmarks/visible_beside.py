@@ -15,11 +15,11 @@ partner (:func:`diagnosis.open_benchmark.separable`; not measured: neither list)
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
 import pandas as pd
+from _machine import read_json, run_script
 from mpi4py import MPI
 
 from brain_fe.io import write_json_atomic
@@ -34,7 +34,7 @@ OUTSIDE_FIELDS = {"stiffness_drift": "drift", "set_stretch": "set_stretch",
 
 def stored(src: Path, name: str):
     """(label, specimen, truth, recorded times per protocol) of a stored case."""
-    lab = json.loads((src / "labels" / f"{name}.json").read_text())
+    lab = read_json(src / "labels" / f"{name}.json")
     s = dict(lab["specimen"])
     s["torsion_amplitudes"] = tuple(s["torsion_amplitudes"])
     spec = Specimen(**s)
@@ -60,7 +60,7 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     comm, src = MPI.COMM_WORLD, Path(a.benchmark)
     names = sorted(p.stem for p in (src / "labels").glob("world*.json")
-                   if json.loads(p.read_text())["kind"] == "pair")
+                   if read_json(p)["kind"] == "pair")
     counter, mine, models = SharedCounter(comm), {}, {}
     for name in dynamic_items(names, counter):
         lab, spec, truth, times = stored(src, name)
@@ -81,4 +81,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main)

@@ -9,7 +9,7 @@ import traceback
 from importlib.metadata import PackageNotFoundError, version
 
 from .commands import COMMANDS
-from .errors import CLIError
+from .errors import CLIError, abort_other_ranks, one_line
 
 log = logging.getLogger("brainmech")
 
@@ -42,17 +42,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _abort_other_ranks(code: int) -> None:
-    """Under ``mpirun``, a failure of one rank's own work (a solve, a file) ends the whole
-    run: the other ranks would otherwise wait for it forever.  Errors in the inputs are
-    found by every rank alike and end each of them cleanly, without this."""
-    mpi = sys.modules.get("mpi4py.MPI")
-    if mpi is not None and mpi.Is_initialized() and not mpi.Is_finalized() \
-            and mpi.COMM_WORLD.size > 1:
-        sys.stderr.flush()
-        mpi.COMM_WORLD.Abort(code)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -66,10 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.run(args)
     except (CLIError, ValueError, ConvergenceError, OSError) as exc:
-        msg = " ".join(str(exc).splitlines()) or type(exc).__name__
-        print(f"brainmech {args.command}: error: {msg}", file=sys.stderr)
+        print(f"brainmech {args.command}: error: {one_line(exc)}", file=sys.stderr)
         if isinstance(exc, (ConvergenceError, OSError)):
-            _abort_other_ranks(1)
+            abort_other_ranks(1)
         return 1
     except KeyboardInterrupt:
         print("brainmech: interrupted", file=sys.stderr)
@@ -78,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         # ends (the other ranks would wait for this one at their next collective call; an
         # MPI rank of the open benchmark did, spinning, for the rest of a 2-hour run)
         traceback.print_exc()
-        _abort_other_ranks(1)
+        abort_other_ranks(1)
         return 1
 
 

@@ -126,3 +126,33 @@ def test_an_internal_error_on_one_rank_ends_the_whole_mpirun(tmp_path):
     assert r.returncode != 0
     assert "RuntimeError: an internal error on rank 1" in r.stderr
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("content, expected", [
+    ('{"seed": 9,\n "cases": [1, 2,]}', "bad.json: line 2 column 17: Expecting value"),
+    (None, "No such file or directory"),
+    ('{"seed": 9}', "bad.json: no field 'cases'"),
+])
+def test_a_benchmark_script_ends_on_bad_input_with_one_line(tmp_path, content, expected):
+    """A benchmark script (here benchmarks/mimicked_outside.py --rescore) given a malformed
+    JSON file, a missing one or one without a field it reads: one line on stderr naming the
+    file (and the line and column), exit status 1, no traceback, no output file."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from launch import child_env
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "mimicked_outside.py"
+    bad = tmp_path / "bad.json"
+    if content is not None:
+        bad.write_text(content)
+    out = tmp_path / "out.json"
+    r = subprocess.run([sys.executable, str(script), "--rescore", str(bad), "--out", str(out)],
+                       env=child_env(), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1
+    lines = r.stderr.strip().splitlines()
+    assert lines[-1].startswith("mimicked_outside.py: error: "), r.stderr
+    assert expected in lines[-1] and str(bad) in lines[-1]
+    assert "Traceback" not in r.stderr
+    assert not out.exists()

@@ -377,7 +377,7 @@ def test_series_far_below_amplitude_is_warned_not_rejected(tmp_path, caplog):
     assert "(S1, torsion, amplitude 30) reaches only 0.3 of its amplitude" in caplog.text
 
 
-def test_last_digit_perturbation_changes_only_the_measured_numbers(tmp_path):
+def test_last_digit_perturbation_changes_only_the_measured_numbers(tmp_path, monkeypatch):
     """benchmarks/last_digits.py (is a diagnosis determined by the data?): every measured
     number moves by at most a few units in the last place, most move, and the protocol,
     the flags and the empty cells stay exactly as written."""
@@ -385,6 +385,7 @@ def test_last_digit_perturbation_changes_only_the_measured_numbers(tmp_path):
     from pathlib import Path
 
     path = Path(__file__).resolve().parents[1] / "benchmarks" / "last_digits.py"
+    monkeypatch.syspath_prepend(str(path.parent))  # its helpers (as when run as a script)
     spec = importlib.util.spec_from_file_location("last_digits", path)
     last_digits = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(last_digits)
