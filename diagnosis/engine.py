@@ -55,7 +55,7 @@ from . import locate as loc
 from .drift import drift_model
 from .effects import BASE_NAMES, check_effects, library, parameter_names, separating_test
 from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
-from .noise import NoiseModel, estimate_noise, fit_noise, stated_sd
+from .noise import ChannelNoise, NoiseModel, estimate_noise, fit_noise, stated_sd
 from .notes import (
     contact_event_notes,
     contact_notes,
@@ -109,10 +109,11 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.12-open-world-37"
+ENGINE_VERSION = "2026.12-open-world-38"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 RELAXATION = "viscoelastic"  # the effect whose relaxation time :func:`slow_relaxation` reads
+ARTEFACTS = "artefacts"  # the offsets that :func:`diagnosis.notes.offset_doubt` judges
 # Effects that leave a systematic misfit are named ("partially explained") only when they at
 # least halve the RMS misfit (in units of the noise) and what they leave holds no stiffness
 # trend with time (physics no library effect makes, which they may stand in for); otherwise
@@ -333,6 +334,16 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         finally:  # every round, the one that stops too
             entry["whole_round"] = round(time.perf_counter() - t_round, 2)
     t_end = time.perf_counter()
+    weak_offsets = "" if stated_in_full(obs, noise) else offset_doubt(
+        rounds, chosen, len(obs), bic_margin)
+    if weak_offsets:  # offsets that the rig's slow noise could make: said, not named
+        with sharing(sim, comm):
+            without = _without(ctx, base, current, chosen, ARTEFACTS)
+        if without is not None:
+            current, chosen = without, [e for e in chosen if e != ARTEFACTS]
+            J = _jacobian(sim, comm, current, parameter_names(lib, chosen))
+            weak_offsets = offset_doubt(rounds, [ARTEFACTS], len(obs), bic_margin,
+                                        dropped=True)
     final_noise, rem = _what_remains(ctx, current, noise, also=[base])
     located = loc.locate(obs, ctx.judged(final_noise, base), 1.0,
                           sigma_dof=final_noise.dof)
@@ -392,7 +403,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     doubt = "; ".join(filter(None, [doubt, slowest_wander_doubt(status, rem, final_noise),
                                     threshold_doubt(status, rem, alpha), undetermined,
                                     one_kind_doubt(chosen, obs, current),
-                                    offset_doubt(rounds, chosen, len(obs), bic_margin),
+                                    weak_offsets,
                                     tie_doubt(ambiguous, chosen),
                                     slow_doubt(slow),
                                     split_doubt(status, rem, _status_under(
@@ -540,6 +551,14 @@ def _status_under(obs, base: Fit, current: Fit, in_model: list, nm: NoiseModel,
                    split=rem["split"]["significant"] and "split" not in besides,
                    slow=bool(slow_relaxation(obs, current))),
             (rms_base, rms_final))
+
+
+def stated_in_full(obs: pd.DataFrame, noise: dict | None) -> bool:
+    """Whether every channel of ``obs`` has its whole noise stated (``--noise`` JSON with
+    its slow parts, :func:`diagnosis.noise.statement`): then no slow part is fitted, and
+    the noise model cannot miss one (:func:`diagnosis.notes.offset_doubt` does not apply)."""
+    return bool(noise) and all(isinstance(noise.get(ch), ChannelNoise)
+                               for ch in obs["channel"].unique())
 
 
 def slow_relaxation(obs: pd.DataFrame, f: Fit) -> dict:
