@@ -336,10 +336,12 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     t_end = time.perf_counter()
     weak_offsets = "" if stated_in_full(obs, noise) else offset_doubt(
         rounds, chosen, len(obs), bic_margin)
+    with_offsets = None  # the final fit with offsets not named, and its effects
     if weak_offsets:  # offsets that the rig's slow noise could make: said, not named
         with sharing(sim, comm):
             without = _without(ctx, base, current, chosen, ARTEFACTS)
         if without is not None:
+            with_offsets = (current, list(chosen))
             current, chosen = without, [e for e in chosen if e != ARTEFACTS]
             J = _jacobian(sim, comm, current, parameter_names(lib, chosen))
             weak_offsets = offset_doubt(rounds, [ARTEFACTS], len(obs), bic_margin,
@@ -350,6 +352,13 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     in_model = list(chosen)  # the effects of ``current``, named or not
     (status, chosen, tried), (rms_base, rms_final) = _status_under(
         obs, base, current, in_model, final_noise, rem)
+    if with_offsets and status == "unexplained" and _status_under(
+            obs, base, with_offsets[0], with_offsets[1],
+            *_what_remains(ctx, with_offsets[0], noise, also=[base]))[0][0] == "unexplained":
+        # unexplained with the offsets too: they decide nothing, a note says what they gained
+        notes.append(weak_offsets.replace("artefacts not named: offsets gained",
+                                          "offsets (artefacts), not named, gained", 1))
+        weak_offsets = ""
     trend, sd = rem["trend"]["significant"], final_noise.sd()
     if tried:
         notes.append(f"the library's closest model ({'+'.join(sorted(tried))}) leaves "

@@ -244,7 +244,8 @@ def offset_doubt(rounds: list, named: list, n: int, bic_margin: float, *,
     does not name such offsets (:func:`diagnosis.engine.diagnose` refits without them;
     ``dropped``: the wording says so): they have not earned their place against the noise
     they cannot be told from, which the issue's rule for an effect that cannot be told
-    apart asks be said instead of named."""
+    apart asks be said instead of named.  Where the fit without them is ``unexplained``
+    and the fit with them would be too, they decide nothing: a note, not a doubt."""
     if "artefacts" not in named:
         return ""
     for rnd in reversed(rounds):  # dropped by a re-test and added again: the last one
