@@ -324,6 +324,24 @@ def test_offsets_named_within_what_the_rigs_slow_noise_makes_are_a_cannot_tell()
         "artefacts not named: offsets gained 26.1 in -2 log L, 1.0 times its BIC bar")
 
 
+def _one_pass_with_offset(offset: float):
+    """A homogeneous simulator and its recordings: one compression/tension pass of 30
+    points (mu 1.3 kPa, alpha -15, nu0 0.49), a stress offset, white noise of SD 1e-3."""
+    import pandas as pd
+
+    from simulators.homogeneous import HomogeneousSimulator
+
+    lam = np.r_[np.linspace(0.99, 0.85, 15), np.linspace(1.01, 1.15, 15)]
+    obs = pd.DataFrame({"specimen": "S", "curve": ["compression"] * 15 + ["tension"] * 15,
+                        "channel": "stress", "branch": "loading", "cycle": 1,
+                        "control": lam, "time_s": np.nan, "value": 0.0})
+    sim = HomogeneousSimulator(obs)
+    obs["value"] = sim.predict({"mu_0": 1.3, "alpha_0": -15.0, "nu0": 0.49,
+                                "stress_offset": offset}, [])[0] \
+        + np.random.default_rng(0).normal(0.0, 1e-3, len(obs))
+    return sim, obs
+
+
 @pytest.mark.parametrize("offset, named", [(0.002, False), (0.003, True)])
 def test_offsets_within_what_the_rigs_slow_noise_makes_are_said_not_named(offset, named):
     """Engine open-world-38: offsets whose gain stays below ``OFFSET_INFLATION`` times
@@ -336,21 +354,11 @@ def test_offsets_within_what_the_rigs_slow_noise_makes_are_said_not_named(offset
     missed) the weak offset is named, without the doubt."""
     import math
 
-    import pandas as pd
-
     from diagnosis.engine import diagnose
     from diagnosis.noise import statement
     from diagnosis.notes import OFFSET_INFLATION
-    from simulators.homogeneous import HomogeneousSimulator
 
-    lam = np.r_[np.linspace(0.99, 0.85, 15), np.linspace(1.01, 1.15, 15)]
-    obs = pd.DataFrame({"specimen": "S", "curve": ["compression"] * 15 + ["tension"] * 15,
-                        "channel": "stress", "branch": "loading", "cycle": 1,
-                        "control": lam, "time_s": np.nan, "value": 0.0})
-    sim = HomogeneousSimulator(obs)
-    obs["value"] = sim.predict({"mu_0": 1.3, "alpha_0": -15.0, "nu0": 0.49,
-                                "stress_offset": offset}, [])[0] \
-        + np.random.default_rng(0).normal(0.0, 1e-3, len(obs))
+    sim, obs = _one_pass_with_offset(offset)
     d = diagnose(sim, obs, noise={"stress": 1e-3})
     out = d.to_json()
     row = next(r for r in out["rounds"][0]["table"] if r["effect"] == "artefacts")
@@ -762,20 +770,10 @@ def test_a_failed_completion_of_the_winner_leaves_its_ranking_fit(monkeypatch, c
     completion that works."""
     import logging
 
-    import pandas as pd
-
     import diagnosis.engine as eng
     from brain_fe.solver import ConvergenceError
-    from simulators.homogeneous import HomogeneousSimulator
 
-    lam = np.r_[np.linspace(0.99, 0.85, 15), np.linspace(1.01, 1.15, 15)]
-    obs = pd.DataFrame({"specimen": "S", "curve": ["compression"] * 15 + ["tension"] * 15,
-                        "channel": "stress", "branch": "loading", "cycle": 1,
-                        "control": lam, "time_s": np.nan, "value": 0.0})
-    sim = HomogeneousSimulator(obs)
-    obs["value"] = sim.predict({"mu_0": 1.3, "alpha_0": -15.0, "nu0": 0.49,
-                                "stress_offset": 0.05}, [])[0] \
-        + np.random.default_rng(0).normal(0.0, 1e-3, len(obs))
+    sim, obs = _one_pass_with_offset(0.05)
     works = eng.diagnose(sim, obs, noise={"stress": 1e-3})
     assert works.verdict == "artefacts"
 
