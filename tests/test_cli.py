@@ -129,14 +129,16 @@ def test_an_internal_error_on_one_rank_ends_the_whole_mpirun(tmp_path):
 
 
 @pytest.mark.parametrize("content, expected", [
-    ('{"seed": 9,\n "cases": [1, 2,]}', "bad.json: line 2 column 17: Expecting value"),
-    (None, "No such file or directory"),
-    ('{"seed": 9}', "bad.json: no field 'cases'"),
+    # the message after the column is Python's own (3.11 and 3.13 word it differently)
+    ('{"seed": 9,\n "cases": [1, 2,]}', r"bad\.json: line 2 column 1[67]: \w"),
+    (None, r"No such file or directory: '[^']*bad\.json'"),
+    ('{"seed": 9}', r"bad\.json: no field 'cases'"),
 ])
 def test_a_benchmark_script_ends_on_bad_input_with_one_line(tmp_path, content, expected):
     """A benchmark script (here benchmarks/mimicked_outside.py --rescore) given a malformed
     JSON file, a missing one or one without a field it reads: one line on stderr naming the
     file (and the line and column), exit status 1, no traceback, no output file."""
+    import re
     import subprocess
     import sys
     from pathlib import Path
@@ -153,6 +155,6 @@ def test_a_benchmark_script_ends_on_bad_input_with_one_line(tmp_path, content, e
     assert r.returncode == 1
     lines = r.stderr.strip().splitlines()
     assert lines[-1].startswith("mimicked_outside.py: error: "), r.stderr
-    assert expected in lines[-1] and str(bad) in lines[-1]
+    assert re.search(expected, lines[-1]) and str(bad) in lines[-1], lines[-1]
     assert "Traceback" not in r.stderr
     assert not out.exists()
