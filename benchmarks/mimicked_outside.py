@@ -84,7 +84,7 @@ def result(every: dict, summary: str | None) -> dict:
         for key in ("mimicked_with_pairs", "mimicked_with_pairs_under_rig_noise"):
             out[key] = {n: r[key] for n, r in sorted(every.items()) if r.get(key)}
     if summary:
-        by_case = read_json(Path(summary))["by_case"]
+        by_case = read_json(summary, "by_case")["by_case"]
         closest = {n: r["closest"] for n, r in every.items()}
         out["score"] = outside_ceiling(by_case, closest, pairs=False)
         out["score_under_rig_noise"] = outside_ceiling(by_case, closest, "rig", pairs=False)

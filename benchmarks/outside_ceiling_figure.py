@@ -52,7 +52,7 @@ def bars(files: list[Path]) -> list[dict]:
 
 def draw(rows: list[dict], out: Path) -> None:
     if not rows:
-        raise SystemExit("no bar to draw: the files hold no score (run mimicked_outside.py "
+        raise ValueError("no bar to draw: the files hold no score (run mimicked_outside.py "
                          "with --summary)")
     fig, ax = plt.subplots(figsize=(max(6.0, 0.6 * len(rows) + 4.0), 4.4))
     x = range(len(rows))

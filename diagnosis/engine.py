@@ -345,7 +345,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
             current, chosen = without, [e for e in chosen if e != ARTEFACTS]
             J = _jacobian(sim, comm, current, parameter_names(lib, chosen))
             weak_offsets = offset_doubt(rounds, [ARTEFACTS], len(obs), bic_margin,
-                                        dropped=True)
+                                        wording="dropped")
     final_noise, rem = _what_remains(ctx, current, noise, also=[base])
     located = loc.locate(obs, ctx.judged(final_noise, base), 1.0,
                           sigma_dof=final_noise.dof)
@@ -356,8 +356,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
             obs, base, with_offsets[0], with_offsets[1],
             *_what_remains(ctx, with_offsets[0], noise, also=[base]))[0][0] == "unexplained":
         # unexplained with the offsets too: they decide nothing, a note says what they gained
-        notes.append(weak_offsets.replace("artefacts not named: offsets gained",
-                                          "offsets (artefacts), not named, gained", 1))
+        notes.append(offset_doubt(rounds, [ARTEFACTS], len(obs), bic_margin, wording="note"))
         weak_offsets = ""
     trend, sd = rem["trend"]["significant"], final_noise.sd()
     if tried:

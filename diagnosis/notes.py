@@ -223,8 +223,15 @@ def slow_doubt(slow: dict) -> str:
 OFFSET_INFLATION = 8.0
 
 
+# How :func:`offset_doubt` opens: offsets named with the doubt (a fit without them failed),
+# not named (a doubt beside the verdict), not named and deciding nothing (a note)
+OFFSET_WORDING = {"named": "artefacts named with a gain of",
+                  "dropped": "artefacts not named: offsets gained",
+                  "note": "offsets (artefacts), not named, gained"}
+
+
 def offset_doubt(rounds: list, named: list, n: int, bic_margin: float, *,
-                 dropped: bool = False) -> str:
+                 wording: str = "named") -> str:
     """Why ``artefacts`` (offsets) named with a gain below :data:`OFFSET_INFLATION` times
     its bar cannot be trusted, or ''.  An offset is the slowest misfit there is, and the
     noise model learns the noise's slow power only from what differs between cycles (the
@@ -242,10 +249,11 @@ def offset_doubt(rounds: list, named: list, n: int, bic_margin: float, *,
     bar); on seed 12 (open-world-37), 5 flagged: 3 wrong (the only false alarms of its 30
     controls, and an outside case) and 2 right pairs.  Since open-world-38 the diagnosis
     does not name such offsets (:func:`diagnosis.engine.diagnose` refits without them;
-    ``dropped``: the wording says so): they have not earned their place against the noise
-    they cannot be told from, which the issue's rule for an effect that cannot be told
-    apart asks be said instead of named.  Where the fit without them is ``unexplained``
-    and the fit with them would be too, they decide nothing: a note, not a doubt."""
+    ``wording``, a key of :data:`OFFSET_WORDING`, says so): they have not earned their
+    place against the noise they cannot be told from, which the issue's rule for an
+    effect that cannot be told apart asks be said instead of named.  Where the fit
+    without them is ``unexplained`` and the fit with them would be too, they decide
+    nothing: a note, not a doubt."""
     if "artefacts" not in named:
         return ""
     for rnd in reversed(rounds):  # dropped by a re-test and added again: the last one
@@ -257,8 +265,7 @@ def offset_doubt(rounds: list, named: list, n: int, bic_margin: float, *,
         bar = len(row["parameters"]) * np.log(n) + bic_margin
         if row["lrt"] >= OFFSET_INFLATION * bar:
             return ""
-        return (f"artefacts {'not named: offsets gained' if dropped else 'named with a gain of'}"
-                f" {row['lrt']:.1f} in -2 log L, "
+        return (f"{OFFSET_WORDING[wording]} {row['lrt']:.1f} in -2 log L, "
                 f"{row['lrt'] / bar:.1f} times its BIC bar of {bar:.1f}: an offset is the "
                 "slowest misfit there is, the noise model of a short series sees a rig's "
                 "wander, drift or slow filter only in part, and these make an offset of "

@@ -320,7 +320,7 @@ def test_offsets_named_within_what_the_rigs_slow_noise_makes_are_a_cannot_tell()
                         ["artefacts"], 183, 10.0) == ""
     # added, dropped by a later re-test and added again: the last addition is judged
     assert offset_doubt(rounds(26.14) + rounds(900.0), ["artefacts"], 183, 10.0) == ""
-    assert offset_doubt(rounds(26.14), ["artefacts"], 183, 10.0, dropped=True).startswith(
+    assert offset_doubt(rounds(26.14), ["artefacts"], 183, 10.0, wording="dropped").startswith(
         "artefacts not named: offsets gained 26.1 in -2 log L, 1.0 times its BIC bar")
 
 
