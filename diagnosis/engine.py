@@ -334,27 +334,17 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
         finally:  # every round, the one that stops too
             entry["whole_round"] = round(time.perf_counter() - t_round, 2)
     t_end = time.perf_counter()
-    weak_offsets = "" if stated_in_full(obs, noise) else offset_doubt(
-        rounds, chosen, len(obs), bic_margin)
-    with_offsets = None  # the final fit with offsets not named, and its effects
-    if weak_offsets:  # offsets that the rig's slow noise could make: said, not named
-        with sharing(sim, comm):
-            without = _without(ctx, base, current, chosen, ARTEFACTS)
-        if without is not None:
-            with_offsets = (current, list(chosen))
-            current, chosen = without, [e for e in chosen if e != ARTEFACTS]
-            J = _jacobian(sim, comm, current, parameter_names(lib, chosen))
-            weak_offsets = offset_doubt(rounds, [ARTEFACTS], len(obs), bic_margin,
-                                        wording="dropped")
+    current, chosen, with_offsets, weak_offsets = _weigh_offsets(
+        ctx, comm, rounds, base, current, chosen, noise)
+    if with_offsets:
+        J = _jacobian(sim, comm, current, parameter_names(lib, chosen))
     final_noise, rem = _what_remains(ctx, current, noise, also=[base])
     located = loc.locate(obs, ctx.judged(final_noise, base), 1.0,
                           sigma_dof=final_noise.dof)
     in_model = list(chosen)  # the effects of ``current``, named or not
     (status, chosen, tried), (rms_base, rms_final) = _status_under(
         obs, base, current, in_model, final_noise, rem)
-    if with_offsets and status == "unexplained" and _status_under(
-            obs, base, with_offsets[0], with_offsets[1],
-            *_what_remains(ctx, with_offsets[0], noise, also=[base]))[0][0] == "unexplained":
+    if status == "unexplained" and _unexplained_with(ctx, base, with_offsets, noise):
         # unexplained with the offsets too: they decide nothing, a note says what they gained
         notes.append(offset_doubt(rounds, [ARTEFACTS], len(obs), bic_margin, wording="note"))
         weak_offsets = ""
@@ -602,6 +592,36 @@ def _refit_without(ctx: Context, current: Fit, in_model: list, effect: str) -> F
     start = {k: v for k, v in current.values.items() if k not in ctx.lib[effect].names}
     return fit(ctx.sim, ctx.obs, ctx.weights, start, parameter_names(ctx.lib, rest),
                effect="+".join(rest), max_nfev=ctx.max_nfev, effect_def=_union(ctx, rest))
+
+
+def _weigh_offsets(ctx: Context, comm, rounds: list, base: Fit, current: Fit, chosen: list,
+                   noise) -> tuple[Fit, list, tuple[Fit, list] | None, str]:
+    """Offsets (``artefacts``) named with a gain the rig's slow noise could make
+    (:func:`diagnosis.notes.offset_doubt`; not when every channel's noise is stated in
+    full, :func:`stated_in_full`) are said, not named: the final fit and effects without
+    them, the fit and effects with them (None when they stay), and the doubt's words.
+    When the fit without them fails, they stay named with the doubt."""
+    n, margin = len(ctx.obs), ctx.bic_margin
+    doubt = "" if stated_in_full(ctx.obs, noise) else offset_doubt(rounds, chosen, n, margin)
+    if not doubt:
+        return current, chosen, None, ""
+    with sharing(ctx.sim, comm):
+        without = _without(ctx, base, current, chosen, ARTEFACTS)
+    if without is None:
+        return current, chosen, None, doubt
+    return (without, [e for e in chosen if e != ARTEFACTS], (current, list(chosen)),
+            offset_doubt(rounds, [ARTEFACTS], n, margin, wording="dropped"))
+
+
+def _unexplained_with(ctx: Context, base: Fit, with_offsets: tuple[Fit, list] | None,
+                      noise) -> bool:
+    """Whether the fit with the offsets not named (:func:`_weigh_offsets`) would be
+    ``unexplained`` too, judged under the noise model of its own residual."""
+    if not with_offsets:
+        return False
+    f, effects = with_offsets
+    return _status_under(ctx.obs, base, f, effects,
+                         *_what_remains(ctx, f, noise, also=[base]))[0][0] == "unexplained"
 
 
 def _without(ctx: Context, base: Fit, current: Fit, in_model: list, effect: str) -> Fit | None:
