@@ -109,7 +109,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.12-open-world-38"
+ENGINE_VERSION = "2026.12-open-world-39"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 RELAXATION = "viscoelastic"  # the effect whose relaxation time :func:`slow_relaxation` reads
@@ -280,7 +280,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
     timings = {"base_fit_and_correction": round(time.perf_counter() - t0, 2), "rounds": []}
     if progress:
         progress("base")
-    lib = library(sim.kind)
+    lib = library(sim.kind, getattr(sim, "nu0", None))  # compressibility: below nu0
     errors: list = []  # internal errors (not the model's failures) met on any rank
     ctx = Context(sim, obs, weights, lib, list(BASE_NAMES), alpha, bic_margin, max_nfev,
                   share_with(comm, sim, errors), noise, errors)

@@ -568,3 +568,37 @@ def test_the_score_of_an_effect_at_its_bound_is_one_sided():
     resid = obs["value"] - float(a @ obs["value"] / (a @ a)) * a  # the base's best misfit
     assert abs(s.lm - float(resid @ resid)) < 1e-9
     assert abs(s.start[EFF] - 0.1) < 1e-10 and abs(s.start[MU] - 2.0) < 1e-10
+
+
+def test_compressibility_scores_only_below_the_assumed_nu0():
+    """In a diagnosis (``library(kind, nu0)``) compressibility ranges below the assumed nu0
+    only: a misfit that asks for a stiffer volumetric response (nu0 up) scores nothing, one
+    that asks for a lower nu0 scores its whole least-squares gain.  Exact on a linear model
+    y = mu a + (nu0 - 0.49) b, against the closed-form gain (1e-9)."""
+    from diagnosis.effects import library
+
+    nu = Param("nu0")
+    comp = library("fe", 0.49)["compressibility"]
+    assert comp.bounds(nu) == (0.2, 0.49)
+    assert library("fe")["compressibility"].bounds(nu) == (0.2, 0.4999)  # generators: both
+    assert library("fe", 0.49)["viscoelastic"] is library("fe")["viscoelastic"]
+    x = np.linspace(0.0, 1.0, 40)
+    a, b = x, x**2
+
+    def predict(values, names):
+        cols = {MU: a, nu: b}
+        jac = np.column_stack([cols[n] for n in names]) if names else np.zeros((x.size, 0))
+        return types.SimpleNamespace(y=values[MU] * a + (values[nu] - 0.49) * b,
+                                     jacobian=jac)
+
+    sim = types.SimpleNamespace(predict=predict, nu0=0.49)
+    for shift in (0.05, -0.05):  # the data's nu0 above, then below the assumed one
+        data = 2.0 * a + shift * b
+        current = types.SimpleNamespace(values={MU: 1.0, nu: 0.49},
+                                        prediction=predict({MU: 1.0, nu: 0.49}, []).y)
+        s = score(sim, _Obs({"value": data}), np.ones(40), current, comp, {"nu0": 0.49},
+                  [MU], a[:, None])
+        (m,), *_ = np.linalg.lstsq(a[:, None], data, rcond=None)
+        gain = float(np.sum((data - m * a) ** 2))  # the joint fit is exact: all of it
+        assert s.lm_free == pytest.approx(gain, rel=1e-9)
+        assert s.lm == (pytest.approx(gain, rel=1e-9) if shift < 0 else 0.0)
