@@ -6,12 +6,12 @@ are fitted in the transformed coordinates given here (log10 for scales spanning 
 
 Compressibility is the tissue changing volume *more* than the assumed nu0 lets it: in a
 diagnosis (:func:`library` given the assumed nu0) its nu0 ranges only below the assumed
-value: its neutral point at a bound, as a relaxation's, a softening's and a second Ogden
-term's are.  A fit that would
-raise nu0 asks for a stiffer volumetric response than assumed (glued ends stiffening the
-compression more): that is a wrong assumption to set (``--nu0``), or other physics the
-stiffer ends stand in for; named "compressibility" it was wrong in all three verdicts of
-seeds 13 and 14 that held it (BENCHMARKS.md, "Engine open-world-39").
+value, its neutral point at a bound as a relaxation's, a softening's and a second Ogden
+term's are.  A fit that would raise nu0 asks for a stiffer volumetric response than
+assumed (glued ends stiffening the compression more): that is a wrong assumption to set
+(``--nu0``), or other physics the stiffer ends stand in for; named "compressibility" it
+was wrong in all three verdicts of seeds 13 and 14 that held it (BENCHMARKS.md, "Engine
+open-world-39").
 
 | effect | parameters (fitted as) | neutral |
 |---|---|---|
