@@ -109,7 +109,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.12-open-world-39"
+ENGINE_VERSION = "2026.12-open-world-40"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 RELAXATION = "viscoelastic"  # the effect whose relaxation time :func:`slow_relaxation` reads

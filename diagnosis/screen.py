@@ -101,6 +101,18 @@ def design(effect, nu0: float, scales: dict) -> list[dict]:
     return [{str(n): 0.0 for n in effect.names}]  # offsets: zero
 
 
+def neutral_point(effect, nu0: float) -> dict | None:
+    """The design point where ``effect`` *is* the current model, every parameter at its
+    neutral value (``nu0`` for the assumed one), where its score is the score statistic
+    proper; None when some parameter has no finite neutral value (a glue layer's is at
+    infinity) or acts only through another (a relaxation time, a softening's m)."""
+    point = {str(n): nu0 if v is None else v for n, v in effect.neutral.items()}
+    if set(point) != {str(n) for n in effect.names} or not all(
+            map(math.isfinite, point.values())):
+        return None
+    return point
+
+
 MAX_STEP_OF_RANGE = 0.3  # a Gauss-Newton step longer than this share of the bounds is not
 # trusted as a start
 

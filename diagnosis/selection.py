@@ -37,7 +37,7 @@ from scipy import stats
 from .effects import parameter_names
 from .fitting import BASE_BOUNDS, Fit, UnsolvableStart, fit
 from .noise import lrt_p_value
-from .screen import at_point, design, design_scales, score
+from .screen import at_point, design, design_scales, neutral_point, score
 
 log = logging.getLogger(__name__)
 
@@ -274,7 +274,8 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
     """Score and fit every candidate added to the current model.  After the first round
     (``first``), only the candidates it screened in are considered (fitted, failed to
     fit, or with a two-sided score that would have passed: ``alive``), each at the design
-    point whose fit won there (:func:`second_start`; else the best scoring one): an
+    point whose fit won there (:func:`second_start`; else the best scoring one), and at
+    its neutral point when that one was of finite size: an
     effect with no score at the base fit
     is not unmasked by another effect in practice, and every later round follows the
     recorded path of a history model, where a score costs several seconds."""
@@ -288,8 +289,16 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
         # fitted there, or screened in and failed (the model could not follow it from
         # the base fit; from another effect's fit it may), or kept alive (run_round's
         # ``alive``)
+        # and at its neutral point too when the one that won there is of finite size (a
+        # lower nu0): beside another effect the current fit may ask for the effect where
+        # the base fit did not, which the score at the neutral point sees and one step
+        # from a finite point may not (an open-world compressibility beside a glue layer:
+        # score 0 from nu0 0.45, LRT 37 when fitted from the assumed nu0)
         candidates = [e for e in candidates if e in first.alive]
         points = [(e, first.scores[e].point) for e in candidates]
+        points += [(e, n) for e, p in points
+                   if ctx.lib[e].of_finite_size(p, sim.nu0)
+                   and (n := neutral_point(ctx.lib[e], sim.nu0)) is not None]
 
     def one_score(item):
         try:

@@ -602,3 +602,52 @@ def test_compressibility_scores_only_below_the_assumed_nu0():
         gain = float(np.sum((data - m * a) ** 2))  # the joint fit is exact: all of it
         assert s.lm_free == pytest.approx(gain, rel=1e-9)
         assert s.lm == (pytest.approx(gain, rel=1e-9) if shift < 0 else 0.0)
+
+
+def test_a_later_round_scores_an_effect_at_its_neutral_point_too():
+    """A later round scores each candidate at the design point that won the first round;
+    when that point is of finite size (nu0 0.45) it scores it at the neutral point (the
+    assumed nu0) too.  Model y = mu a + q(nu0) b with q = nu0 - 0.49 above 0.46 and flat
+    (-0.03) below, recorded at nu0 0.48: from 0.45 no step can see nu0 (its column is zero
+    there, score 0: open-world-39's seed-14 world058, a compressibility beside a glue layer
+    scored 0 from 0.45 and worth LRT 37 from the assumed nu0); from the neutral point the
+    score is the closed-form least-squares gain (1e-9) and the fit reaches 0.48 (1e-6)."""
+    import pandas as pd
+
+    from diagnosis.effects import library
+    from diagnosis.screen import Score
+    from diagnosis.selection import Context, Round, run_round
+    from diagnosis.sharing import share_with
+
+    nu = Param("nu0")
+    x = np.linspace(0.0, 1.0, 40)
+    a, b = x, x**2
+
+    def predict(values, names):
+        v = values[nu]
+        cols = {MU: a, nu: b * float(v >= 0.46)}
+        jac = np.column_stack([cols[n] for n in names]) if names else np.zeros((x.size, 0))
+        return types.SimpleNamespace(y=values[MU] * a + max(v - 0.49, -0.03) * b,
+                                     jacobian=jac)
+
+    sim = types.SimpleNamespace(predict=predict, nu0=0.49)
+    data = 2.0 * a - 0.01 * b
+    sigma = np.full(40, 1e-4)
+    lib = library("fe", 0.49)
+    ctx = Context(sim, pd.DataFrame({"value": data}), sigma, lib, [MU], 1e-3, 10.0, 40,
+                  share_with(None))
+    current = types.SimpleNamespace(values={MU: 2.0, nu: 0.49},
+                                    prediction=predict({MU: 2.0, nu: 0.49}, []).y)
+    comp = lib["compressibility"]
+    at_finite = score(sim, _Obs({"value": data}), sigma, current, comp, {"nu0": 0.45}, [MU],
+                      a[:, None])
+    assert at_finite.lm == 0.0  # what the round saw before
+    first = Round([], {"compressibility": Score("compressibility", 1.0, 1, {},
+                                                {"nu0": 0.45})}, {}, [],
+                  alive=["compressibility"])
+    rnd = run_round(ctx, current, [], ["compressibility"], a[:, None], first=first)
+    s = rnd.scores["compressibility"]
+    assert s.point == {"nu0": 0.49}
+    r = data / sigma - float(a @ data / (a @ a)) * a / sigma  # the base's best misfit
+    assert s.lm == pytest.approx(float(r @ r), rel=1e-9)
+    assert rnd.fits["compressibility"].values[nu] == pytest.approx(0.48, abs=1e-6)
