@@ -109,7 +109,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.12-open-world-41"
+ENGINE_VERSION = "2026.12-open-world-40"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 RELAXATION = "viscoelastic"  # the effect whose relaxation time :func:`slow_relaxation` reads
@@ -671,12 +671,11 @@ def _remains_under(ctx: Context, current: Fit, nm: NoiseModel) -> dict:
                      names=current.names)
 
 
-def _noise_of(obs, f: Fit, stated, columns: np.ndarray | None = None) -> NoiseModel:
+def _noise_of(obs, f: Fit, stated) -> NoiseModel:
     """The noise model of ``f``'s residual by restricted ML: every misfit the tests of
     :mod:`diagnosis.remaining` call systematic (repeated at every cycle or branch, a
-    stiffness trend) and ``f``'s own parameters (its Jacobian's columns; ``columns``
-    instead when given) are kept out of it, so that a smooth misfit the model lacks is
-    never taken for wander.  On short
+    stiffness trend) and ``f``'s own parameters (its Jacobian's columns) are kept out of
+    it, so that a smooth misfit the model lacks is never taken for wander.  On short
     series this leaves few degrees of freedom; the model carries them (``dof``) and the
     located tests are F tests with them.  A series of several cycles too short to keep
     out all of them keeps out the stiffness trend and ``f``'s parameters: kept whole, its
@@ -688,13 +687,12 @@ def _noise_of(obs, f: Fit, stated, columns: np.ndarray | None = None) -> NoiseMo
     spurious effect)."""
     B = systematic_basis(obs, f.prediction)
     T = trend_basis(obs, f.prediction)
-    J = f.jacobian if columns is None else columns
-    if J is None or not np.isfinite(J).all():
+    if f.jacobian is None or not np.isfinite(f.jacobian).all():
         return fit_noise(obs, f.residual(obs), stated=stated, systematic=[B, T])
     cycled = np.zeros(len(obs), bool)
     cycled[trend_rows(obs)] = True
     return fit_noise(obs, f.residual(obs), stated=stated, systematic=[
-        np.hstack([B, J]), np.hstack([T, J * cycled[:, None]])])
+        np.hstack([B, f.jacobian]), np.hstack([T, f.jacobian * cycled[:, None]])])
 
 
 def _jacobian(sim, comm, f: Fit, names: list) -> np.ndarray:
@@ -727,20 +725,10 @@ def _completed(ctx: Context, f: Fit, effects: list) -> Fit:
 
 
 def _judge(ctx: Context, rnd, current: Fit, m: int, stated) -> list:
-    """The round's noise model and table; returns the significant rows, best first.
-
-    The noise is estimated from the residual of the round's best fit (the closest thing
-    to pure noise), keeping out of it the columns of the model every candidate of the
-    round extends (``current``'s Jacobian), not the best fit's own extra columns: kept
-    out, a candidate of no real size made the noise blind along its own direction and
-    gained there under it what it lost under any other noise model (open-world-40's
-    controls: seed 15's world063 a Mullins softening at LRT 35.1 under its own fit's
-    noise, -3.8 under the current fit's, 5.0 under this one; seed 12's world026 offsets
-    107.8 -> 25.7; seed 10's world012 a relaxation 31.5 -> -2.0)."""
+    """The round's noise model (from its best fit's residual) and table; returns the
+    significant rows, best first."""
     leader = min(rnd.fits.values(), key=lambda f: f.chi2)
-    shared = current.jacobian if current.jacobian is not None and len(
-        current.jacobian) == len(ctx.obs) else None
-    rnd.noise = _noise_of(ctx.obs, leader, stated, columns=shared)
+    rnd.noise = _noise_of(ctx.obs, leader, stated)
     rnd.table = compare(ctx, rnd, current, m, rnd.noise)
     sig = [r for r in rnd.table if r["significant"]]
     rival = rnd.noise.rival()

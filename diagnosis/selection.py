@@ -6,9 +6,8 @@ effects selected so far):
 1. every remaining candidate is scored at the current fit (:mod:`diagnosis.screen`) and
    those that could matter are fitted together with the current model's parameters;
 2. the noise model (:mod:`diagnosis.noise`) is estimated from the residual of the best of
-   these fits, the closest thing to pure noise, with the current model's columns (not
-   the best fit's own) kept out (``engine._judge``), and every comparison of the round
-   is made under it: with whitened residuals, chi2 = z.z, the likelihood-ratio statistic
+   these fits, the closest thing to pure noise, and every comparison of the round is made
+   under it: with whitened residuals, chi2 = z.z, the likelihood-ratio statistic
    LRT = chi2_current - chi2_candidate and BIC = chi2 + k ln n.  The noise was estimated
    from these same recordings with nu effective degrees of freedom
    (:meth:`NoiseModel.nu_level`; infinite for a stated noise without a slow part), so
