@@ -275,10 +275,9 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
     (``first``), only the candidates it screened in are considered (fitted, failed to
     fit, or with a two-sided score that would have passed: ``alive``), each at the design
     point whose fit won there (:func:`second_start`; else the best scoring one), and at
-    its neutral point when that one was of finite size: an
-    effect with no score at the base fit
-    is not unmasked by another effect in practice, and every later round follows the
-    recorded path of a history model, where a score costs several seconds."""
+    its neutral point when that one was of finite size: an effect with no score at the
+    base fit is not unmasked by another effect in practice, and every later round follows
+    the recorded path of a history model, where a score costs several seconds."""
     obs, sim = ctx.obs, ctx.sim
     t0 = time.perf_counter()
     names = parameter_names(ctx.lib, current_effects, ctx.base_names)
@@ -289,13 +288,13 @@ def run_round(ctx: Context, current: Fit, current_effects: list, candidates: lis
         # fitted there, or screened in and failed (the model could not follow it from
         # the base fit; from another effect's fit it may), or kept alive (run_round's
         # ``alive``)
+        candidates = [e for e in candidates if e in first.alive]
+        points = [(e, first.scores[e].point) for e in candidates]
         # and at its neutral point too when the one that won there is of finite size (a
         # lower nu0): beside another effect the current fit may ask for the effect where
         # the base fit did not, which the score at the neutral point sees and one step
         # from a finite point may not (an open-world compressibility beside a glue layer:
         # score 0 from nu0 0.45, LRT 37 when fitted from the assumed nu0)
-        candidates = [e for e in candidates if e in first.alive]
-        points = [(e, first.scores[e].point) for e in candidates]
         points += [(e, n) for e, p in points
                    if ctx.lib[e].of_finite_size(p, sim.nu0)
                    and (n := neutral_point(ctx.lib[e], sim.nu0)) is not None]
