@@ -57,6 +57,7 @@ from .effects import BASE_NAMES, check_effects, library, parameter_names, separa
 from .fitting import Fit, fit, initial_guess, sigma_guess, solvable_start
 from .noise import ChannelNoise, NoiseModel, estimate_noise, fit_noise, stated_sd
 from .notes import (
+    blind_doubt,
     contact_event_notes,
     contact_notes,
     edge_notes,
@@ -73,6 +74,7 @@ from .notes import (
 )
 from .remaining import (
     remaining,
+    reproducible_basis,
     split_words,
     systematic,
     systematic_basis,
@@ -109,7 +111,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.12-open-world-40"
+ENGINE_VERSION = "2026.12-open-world-42"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 RELAXATION = "viscoelastic"  # the effect whose relaxation time :func:`slow_relaxation` reads
@@ -225,7 +227,8 @@ class Diagnosis:
             "ranking": self.ranking,
             "rounds": [{"from": "+".join(r.current) or "base", "added": r.added,
                         "dropped": r.dropped, "noise_dof": _finite(r.noise.nu_level())
-                        if r.noise is not None else None, "table": r.table}
+                        if r.noise is not None else None, "table": r.table,
+                        "noise_blind": r.noise_blind}
                        for r in self.rounds],
             "ambiguous": self.ambiguous,
             "detection_limits": self.detection_limits,
@@ -403,6 +406,7 @@ def diagnose(sim, obs: pd.DataFrame, *, fine_sim=None, effects=None, alpha: floa
                                     one_kind_doubt(chosen, obs, current),
                                     weak_offsets,
                                     tie_doubt(ambiguous, chosen),
+                                    blind_doubt(rounds, chosen),
                                     slow_doubt(slow),
                                     split_doubt(status, rem, _status_under(
                                         obs, base, current, in_model, final_noise, rem,
@@ -671,11 +675,12 @@ def _remains_under(ctx: Context, current: Fit, nm: NoiseModel) -> dict:
                      names=current.names)
 
 
-def _noise_of(obs, f: Fit, stated) -> NoiseModel:
+def _noise_of(obs, f: Fit, stated, columns: np.ndarray | None = None) -> NoiseModel:
     """The noise model of ``f``'s residual by restricted ML: every misfit the tests of
     :mod:`diagnosis.remaining` call systematic (repeated at every cycle or branch, a
-    stiffness trend) and ``f``'s own parameters (its Jacobian's columns) are kept out of
-    it, so that a smooth misfit the model lacks is never taken for wander.  On short
+    stiffness trend) and ``f``'s own parameters (its Jacobian's columns; ``columns``
+    instead when given) are kept out of it, so that a smooth misfit the model lacks is
+    never taken for wander.  On short
     series this leaves few degrees of freedom; the model carries them (``dof``) and the
     located tests are F tests with them.  A series of several cycles too short to keep
     out all of them keeps out the stiffness trend and ``f``'s parameters: kept whole, its
@@ -687,12 +692,13 @@ def _noise_of(obs, f: Fit, stated) -> NoiseModel:
     spurious effect)."""
     B = systematic_basis(obs, f.prediction)
     T = trend_basis(obs, f.prediction)
-    if f.jacobian is None or not np.isfinite(f.jacobian).all():
+    J = f.jacobian if columns is None else columns
+    if J is None or not np.isfinite(J).all():
         return fit_noise(obs, f.residual(obs), stated=stated, systematic=[B, T])
     cycled = np.zeros(len(obs), bool)
     cycled[trend_rows(obs)] = True
     return fit_noise(obs, f.residual(obs), stated=stated, systematic=[
-        np.hstack([B, f.jacobian]), np.hstack([T, f.jacobian * cycled[:, None]])])
+        np.hstack([B, J]), np.hstack([T, J * cycled[:, None]])])
 
 
 def _jacobian(sim, comm, f: Fit, names: list) -> np.ndarray:
@@ -726,11 +732,16 @@ def _completed(ctx: Context, f: Fit, effects: list) -> Fit:
 
 def _judge(ctx: Context, rnd, current: Fit, m: int, stated) -> list:
     """The round's noise model (from its best fit's residual) and table; returns the
-    significant rows, best first."""
+    significant rows, best first.
+
+    Where a series repeats (cycles or branches), a candidate must also pass under the
+    noise of the same residual with only ``current``'s columns kept out
+    (:func:`_blind_checked`)."""
     leader = min(rnd.fits.values(), key=lambda f: f.chi2)
     rnd.noise = _noise_of(ctx.obs, leader, stated)
     rnd.table = compare(ctx, rnd, current, m, rnd.noise)
-    sig = [r for r in rnd.table if r["significant"]]
+    sig = _blind_checked(ctx, rnd, current, m, stated, leader,
+                         [r for r in rnd.table if r["significant"]])
     rival = rnd.noise.rival()
     rnd.noise_rival = {}
     if rival is not None:  # what the round would add under the other noise
@@ -739,6 +750,39 @@ def _judge(ctx: Context, rnd, current: Fit, m: int, stated) -> list:
                            "adds": sig[0]["effect"] if sig else None,
                            "rival_adds": alt[0]["effect"] if alt else None}
     return sig
+
+
+def _blind_checked(ctx: Context, rnd, current: Fit, m: int, stated, leader: Fit,
+                   sig: list) -> list:
+    """``sig`` less the candidates that are not significant under the noise of
+    ``leader``'s residual with only ``current``'s columns kept out (the round's own keeps
+    ``leader``'s extra columns out too), where a series repeats; what each noise model
+    passes is kept in ``rnd.noise_blind``.
+
+    Kept out, a candidate's own columns make the noise blind along its direction: a
+    wander that looks like it is then counted whole as its gain (measured on controls:
+    seed 15's world063 a Mullins softening at LRT 35.1 under its own fit's noise, 5.0
+    with only the base columns kept out; seed 10's world012 a relaxation 31.5 -> -2.0;
+    seed 11's world083 28.4 -> -5.6).  Not kept out, a smooth misfit the candidate makes
+    can be taken for wander instead; where a series repeats the systematic basis keeps
+    that misfit out of the noise whole, so a real effect passes under both.  On one pass
+    nothing else does, and the candidate's columns are all that keep it out (open-world-41,
+    the shared noise alone: 10 of 24 real single ramps and Budday's CR moved, 8 of them to
+    ``none``): there the round's own noise decides alone."""
+    rnd.noise_blind = {}
+    J = current.jacobian
+    if not sig or J is None or len(J) != len(ctx.obs) \
+            or reproducible_basis(ctx.obs)[1] == "none":
+        return sig
+    shared = _noise_of(ctx.obs, leader, stated, columns=J)
+    passed = {r["effect"]: r for r in compare(ctx, rnd, current, m, shared)}
+    kept = [r for r in sig if passed[r["effect"]]["significant"]]
+    if kept[:1] != sig[:1]:  # the decision moved: what the round would have added lost
+        r, q = sig[0], passed[sig[0]["effect"]]
+        rnd.noise_blind = {"would_add": r["effect"], "adds": kept[0]["effect"] if kept
+                           else None, "lrt": r["lrt"], "lrt_shared": q["lrt"],
+                           "bic_bar": r["lrt"] + r["delta_bic"] + ctx.bic_margin}
+    return kept
 
 
 def _rival_outcome(ctx: Context, base: Fit, current: Fit, in_model: list,

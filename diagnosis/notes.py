@@ -290,6 +290,26 @@ def tie_doubt(ambiguous: list, named: list) -> str:
         f"{a['separating_test']})" for a in ties)
 
 
+def blind_doubt(rounds: list, named: list) -> str:
+    """Why an effect a round would have added is not named, or '': where a series repeats
+    it gained enough under the noise its own fit leaves (its own columns kept out of the
+    noise, which is then blind along it) but not under the noise of the same residual with
+    only the model's columns it extends kept out (:func:`diagnosis.engine._blind_checked`).
+    The recordings then cannot tell it from the rig's slow noise along its direction.  An
+    effect named in a later round raises no doubt."""
+    said = []
+    for i, rnd in enumerate(rounds, 1):
+        b = getattr(rnd, "noise_blind", None)
+        if not b or b["would_add"] in named:
+            continue
+        said.append(f"round {i} would add {b['would_add']} under the noise its own fit "
+                    f"leaves (LRT {b['lrt']:.1f}, BIC bar {b['bic_bar']:.1f}) but not under "
+                    f"the noise with only the model's own parameters kept out (LRT "
+                    f"{b['lrt_shared']:.1f}): with a noise blind along it, these recordings "
+                    f"cannot tell it from the rig's slow noise, so it is not named")
+    return "; ".join(said)
+
+
 def split_doubt(status: str, rem: dict, unsplit: str) -> str:
     """Why a status that the split test decides cannot be trusted, or '': the shear tests
     ask for other material parameters by the test against the noise model
