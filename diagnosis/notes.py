@@ -304,9 +304,10 @@ def blind_doubt(rounds: list, named: list) -> str:
             continue
         said.append(f"round {i} would add {b['would_add']} under the noise its own fit "
                     f"leaves (LRT {b['lrt']:.1f}, BIC bar {b['bic_bar']:.1f}) but not under "
-                    f"the noise with only the model's own parameters kept out (LRT "
-                    f"{b['lrt_shared']:.1f}): with a noise blind along it, these recordings "
-                    f"cannot tell it from the rig's slow noise, so it is not named")
+                    f"the noise with only the parameters of the model it extends kept out "
+                    f"(LRT {b['lrt_shared']:.1f}): the first is blind along it, and these "
+                    f"recordings cannot tell it from the rig's slow noise, so it is not "
+                    f"named" + (f" ({b['adds']} is added instead)" if b["adds"] else ""))
     return "; ".join(said)
 
 

@@ -4,6 +4,7 @@ sub-stepped time integration interpolated at the instrument's clock, rig noise),
 written apart, diagnosed blind and scored."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -1043,3 +1044,36 @@ def test_a_misfit_under_the_rigs_whole_noise_matches_closed_forms():
     by_case = [{"case": "a", "kind": "outside", "correct": False}]
     assert outside_ceiling(by_case, {"a": seen}, "rig")["mimicked"] == ["a"]
     assert outside_ceiling(by_case, {"a": seen})["not_mimicked_wrong"] == ["a"]
+
+
+DATA = Path(__file__).resolve().parent / "data"
+
+
+def test_a_candidate_whose_own_noise_is_blind_along_it_is_not_named():
+    """Engine open-world-42 on seed 15's world063, a control the project's open-world
+    generator drew (converged mesh, sub-stepped; white, filtered, wander, drift and
+    quantised noise; one compression/tension cycle and two torsions, so every series
+    repeats by branches).  Its first round's Mullins softening gained LRT 35.1 under the
+    noise of its own fit's residual (open-world-40 named it: a false alarm) and 5.0 under
+    the noise of the same residual with only the base model's columns kept out
+    (measured, BENCHMARKS.md "Tried: open-world-41").  Its BIC bar, two parameters on 195
+    points, is 2 ln 195 + 10 = 20.5 (closed form); the verdict is ``none`` and says why
+    (*cannot tell*)."""
+    import math
+
+    from diagnosis.open_benchmark import _diagnose
+
+    spec = read_specimens(DATA / "open_world_s15_world063_specimens.csv")
+    obs = observations(read_recordings(DATA / "open_world_s15_world063_recordings.csv",
+                                       spec))
+    assert len(obs) == 195
+    bar = 2 * math.log(195) + 10.0
+    assert bar == pytest.approx(20.55, abs=0.01)
+    res = _diagnose(obs, spec.iloc[0], 1, "world063")
+    assert (res["verdict"], res["status"]) == ("none", "none")
+    blind = res["rounds"][0]["noise_blind"]
+    assert blind["would_add"] == "mullins" and blind["adds"] is None
+    assert blind["lrt"] == pytest.approx(35.1, abs=3.0)
+    assert blind["bic_bar"] == pytest.approx(bar, abs=0.05)
+    assert blind["lrt_shared"] < 0.5 * bar
+    assert "round 1 would add mullins under the noise its own fit leaves" in res["cannot_tell"]
