@@ -765,10 +765,13 @@ def _blind_checked(ctx: Context, rnd, current: Fit, m: int, stated, leader: Fit,
     with only the base columns kept out; seed 10's world012 a relaxation 31.5 -> -2.0;
     seed 11's world083 28.4 -> -5.6).  Not kept out, a smooth misfit the candidate makes
     can be taken for wander instead; where a series repeats the systematic basis keeps
-    that misfit out of the noise whole, so a real effect passes under both.  On one pass
-    nothing else does, and the candidate's columns are all that keep it out (open-world-41,
-    the shared noise alone: 10 of 24 real single ramps and Budday's CR moved, 8 of them to
-    ``none``): there the round's own noise decides alone."""
+    out of the noise whatever misfit repeats at every cycle or branch, so a real effect
+    that does passes under both (a hysteresis of one cycle differs between its branches
+    and is not kept out: seed 15's world041, an artefacts + Mullins pair on two torsions,
+    lost a stand-in relaxation, LRT 339.6 -> 20.3, and was answered ``artefacts`` with
+    *cannot tell*).  On one pass nothing is kept out but the candidate's columns
+    (open-world-41, the shared noise alone: 10 of 24 real single ramps and Budday's CR
+    moved, 8 of them to ``none``): there the round's own noise decides alone."""
     rnd.noise_blind = {}
     J = current.jacobian
     if not sig or J is None or len(J) != len(ctx.obs) \
