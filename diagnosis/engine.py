@@ -111,7 +111,7 @@ log = logging.getLogger(__name__)
 
 # Bump when a change can alter a verdict: stored benchmark results of another version are
 # diagnosed again instead of reused
-ENGINE_VERSION = "2026.12-open-world-42"
+ENGINE_VERSION = "2026.12-open-world-43"
 RICHARDSON_ORDER = 3.0  # observed order of the axisymmetric model in k (BENCHMARKS.md)
 MAX_EFFECTS = 3
 RELAXATION = "viscoelastic"  # the effect whose relaxation time :func:`slow_relaxation` reads
@@ -754,22 +754,25 @@ def _judge(ctx: Context, rnd, current: Fit, m: int, stated) -> list:
 
 def _blind_checked(ctx: Context, rnd, current: Fit, m: int, stated, leader: Fit,
                    sig: list) -> list:
-    """``sig`` less the candidates that are not significant under the noise of
-    ``leader``'s residual with only ``current``'s columns kept out (the round's own keeps
-    ``leader``'s extra columns out too), where a series repeats; what each noise model
-    passes is kept in ``rnd.noise_blind``.
+    """``sig`` less the candidates whose gain falls below their BIC bar (the size one
+    candidate needs: ``bic_margin`` more than k ln n) under the noise of ``leader``'s
+    residual with only ``current``'s columns kept out (the round's own keeps ``leader``'s
+    extra columns out too), where a series repeats; the decision this moves is kept in
+    ``rnd.noise_blind``.
 
     Kept out, a candidate's own columns make the noise blind along its direction: a
-    wander that looks like it is then counted whole as its gain (measured on controls:
-    seed 15's world063 a Mullins softening at LRT 35.1 under its own fit's noise, 5.0
-    with only the base columns kept out; seed 10's world012 a relaxation 31.5 -> -2.0;
-    seed 11's world083 28.4 -> -5.6).  Not kept out, a smooth misfit the candidate makes
-    can be taken for wander instead; where a series repeats the systematic basis keeps
-    out of the noise whatever misfit repeats at every cycle or branch, so a real effect
-    that does passes under both (a hysteresis of one cycle differs between its branches
-    and is not kept out: seed 15's world041, an artefacts + Mullins pair on two torsions,
-    lost a stand-in relaxation, LRT 339.6 -> 20.3, and was answered ``artefacts`` with
-    *cannot tell*).  On one pass nothing is kept out but the candidate's columns
+    wander that looks like it is then counted whole as its gain, and under the other
+    noise the gain collapses (controls: seed 15's world063 a Mullins softening at LRT
+    35.1 under its own fit's noise, 5.0 with only the base columns kept out, the bar
+    20.5; seed 10's world012 a relaxation 31.5 -> -2.0; seed 11's world083 28.4 -> -5.6).
+    Not kept out, a smooth misfit the candidate makes can be taken for wander instead:
+    where a series repeats the systematic basis keeps out what repeats at every cycle or
+    branch, not a hysteresis of one cycle, which differs between its branches.  So the
+    other noise only asks that the gain not collapse below the bar, not the whole test
+    again (open-world-42 asked for the test: three stand-ins for what the library lacks,
+    at LRT 20.3, 20.9 and 18.5 there against bars of 19.1, 18.6 and 13.7, were dropped,
+    and two outside cases of seed 14 were then named by the relaxation left; chosen after
+    seeing seeds 14 and 15).  On one pass nothing is kept out but the candidate's columns
     (open-world-41, the shared noise alone: 10 of 24 real single ramps and Budday's CR
     moved, 8 of them to ``none``): there the round's own noise decides alone."""
     rnd.noise_blind = {}
@@ -779,7 +782,7 @@ def _blind_checked(ctx: Context, rnd, current: Fit, m: int, stated, leader: Fit,
         return sig
     shared = _noise_of(ctx.obs, leader, stated, columns=J)
     passed = {r["effect"]: r for r in compare(ctx, rnd, current, m, shared)}
-    kept = [r for r in sig if passed[r["effect"]]["significant"]]
+    kept = [r for r in sig if -passed[r["effect"]]["delta_bic"] > ctx.bic_margin]
     if kept[:1] != sig[:1]:  # the decision moved: what the round would have added lost
         r, q = sig[0], passed[sig[0]["effect"]]
         rnd.noise_blind = {"would_add": r["effect"], "adds": kept[0]["effect"] if kept

@@ -293,8 +293,9 @@ def tie_doubt(ambiguous: list, named: list) -> str:
 def blind_doubt(rounds: list, named: list) -> str:
     """Why an effect a round would have added is not named, or '': where a series repeats
     it gained enough under the noise its own fit leaves (its own columns kept out of the
-    noise, which is then blind along it) but not under the noise of the same residual with
-    only the model's columns it extends kept out (:func:`diagnosis.engine._blind_checked`).
+    noise, which is then blind along it) but less than its BIC bar under the noise of the
+    same residual with only the model's columns it extends kept out
+    (:func:`diagnosis.engine._blind_checked`).
     The recordings then cannot tell it from the rig's slow noise along its direction.  An
     effect named in a later round raises no doubt."""
     said = []
@@ -303,9 +304,9 @@ def blind_doubt(rounds: list, named: list) -> str:
         if not b or b["would_add"] in named:
             continue
         said.append(f"round {i} would add {b['would_add']} under the noise its own fit "
-                    f"leaves (LRT {b['lrt']:.1f}, BIC bar {b['bic_bar']:.1f}) but not under "
-                    f"the noise with only the parameters of the model it extends kept out "
-                    f"(LRT {b['lrt_shared']:.1f}): the first is blind along it, and these "
+                    f"leaves (LRT {b['lrt']:.1f}, BIC bar {b['bic_bar']:.1f}) but gains only "
+                    f"LRT {b['lrt_shared']:.1f} under the noise with only the parameters of "
+                    f"the model it extends kept out: the first is blind along it, and these "
                     f"recordings cannot tell it from the rig's slow noise, so it is not "
                     f"named" + (f" ({b['adds']} is added instead)" if b["adds"] else ""))
     return "; ".join(said)
