@@ -42,7 +42,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
@@ -734,9 +734,9 @@ def _judge(ctx: Context, rnd, current: Fit, m: int, stated) -> list:
     """The round's noise model (from its best fit's residual) and table; returns the
     significant rows, best first.
 
-    Where a series repeats (cycles or branches), a candidate must also pass under the
-    noise of the same residual with only ``current``'s columns kept out
-    (:func:`_blind_checked`)."""
+    Where a series repeats (cycles or branches), a candidate's gain must also stay above
+    its BIC bar under the noise of the same residual with only ``current``'s columns kept
+    out (:func:`_blind_checked`)."""
     leader = min(rnd.fits.values(), key=lambda f: f.chi2)
     rnd.noise = _noise_of(ctx.obs, leader, stated)
     rnd.table = compare(ctx, rnd, current, m, rnd.noise)
@@ -781,7 +781,9 @@ def _blind_checked(ctx: Context, rnd, current: Fit, m: int, stated, leader: Fit,
             or reproducible_basis(ctx.obs)[1] == "none":
         return sig
     shared = _noise_of(ctx.obs, leader, stated, columns=J)
-    passed = {r["effect"]: r for r in compare(ctx, rnd, current, m, shared)}
+    # only the significant candidates' fits are judged again (a GLS solve each)
+    mine = replace(rnd, fits={r["effect"]: rnd.fits[r["effect"]] for r in sig})
+    passed = {r["effect"]: r for r in compare(ctx, mine, current, m, shared)}
     kept = [r for r in sig if -passed[r["effect"]]["delta_bic"] > ctx.bic_margin]
     if kept[:1] != sig[:1]:  # the decision moved: what the round would have added lost
         r, q = sig[0], passed[sig[0]["effect"]]

@@ -300,7 +300,7 @@ def blind_doubt(rounds: list, named: list) -> str:
     effect named in a later round raises no doubt."""
     said = []
     for i, rnd in enumerate(rounds, 1):
-        b = getattr(rnd, "noise_blind", None)
+        b = rnd.noise_blind
         if not b or b["would_add"] in named:
             continue
         said.append(f"round {i} would add {b['would_add']} under the noise its own fit "

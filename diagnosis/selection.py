@@ -210,8 +210,9 @@ class Round:
     # when the recordings leave the noise undetermined (NoiseModel.rivals): the series,
     # and the effect the round adds under the chosen noise and under the rival (or None)
     noise_rival: dict = field(default_factory=dict)
-    # where a series repeats and the candidate the round would add under its own noise is
-    # not significant under the noise with only the current model's columns kept out: it,
+    # where a series repeats and the candidate the round would add under its own noise
+    # gains less than its BIC bar under the noise with only the current model's columns
+    # kept out: it,
     # what the round adds instead (or None), its LRT under each and the BIC bar
     # (diagnosis.engine._blind_checked)
     noise_blind: dict = field(default_factory=dict)
