@@ -36,7 +36,8 @@ from _machine import cpu_model, run_script
 
 from brain_fe.io import write_text_atomic
 from diagnosis import noise as nz
-from diagnosis.remaining import remaining, systematic_basis, trend_basis, trend_rows
+from diagnosis.engine import kept_out
+from diagnosis.remaining import remaining
 from recordings.noise import RigNoise, rig_noise
 
 KINDS = {
@@ -72,25 +73,35 @@ def table(per_ramp: int, cycles: int, dt: float) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def restricted_m2logl(obs: pd.DataFrame, r: np.ndarray, kept: list,
+                      models: dict) -> dict:
+    """Per series key (curve, channel): its degrees of freedom and the -2 log L of ``r``
+    under each of ``models`` (name -> noise model), restricted with the column sets
+    ``kept`` as :func:`diagnosis.noise.fit_noise` restricts them."""
+    series = nz._series(obs)
+    for s in series:
+        s.restrict(kept)
+    out = {}
+    for key in dict.fromkeys(s.key for s in series):
+        mine = [s for s in series if s.key == key]
+        out[key] = (sum(len(s.rows) - (0 if s.basis is None else s.basis.shape[1])
+                        for s in mine),
+                    {name: sum(s.nll(m.params[key], r[s.rows]) for s in mine)
+                     for name, m in models.items()})
+    return out
+
+
 def penalised(obs: pd.DataFrame, r: np.ndarray, kept: list, fits: dict,
               penalty: float | None) -> nz.NoiseModel:
     """Per series, the structure of ``fits`` (name -> noise model) with the least
     restricted -2 log L + penalty x parameters (``None``: the log of its degrees of
     freedom)."""
-    series = nz._series(obs)
-    for s in series:
-        s.restrict(kept)
-    full = fits["all (the engine's)"]
     params = {}
-    for key in full.params:
-        mine = [s for s in series if s.key == key]
-        dof = sum(len(s.rows) - (0 if s.basis is None else s.basis.shape[1]) for s in mine)
+    for key, (dof, m2l) in restricted_m2logl(obs, r, kept, fits).items():
         p = math.log(dof) if penalty is None else penalty
-
-        score = {name: sum(s.nll(fits[name].params[key], r[s.rows]) for s in mine)
-                 + p * k for name, (_, k) in STRUCTURES.items()}
+        score = {name: m2l[name] + p * STRUCTURES[name][1] for name in fits}
         params[key] = fits[min(score, key=score.get)].params[key]
-    return nz.NoiseModel(obs, params, full.dof)
+    return nz.NoiseModel(obs, params, fits["all (the engine's)"].dof)
 
 
 def run(per_ramp: int, cycles: int, dt: float, draws: int) -> list[dict]:
@@ -99,10 +110,7 @@ def run(per_ramp: int, cycles: int, dt: float, draws: int) -> list[dict]:
     torque = (obs["channel"] == "torque").to_numpy()
     pred = np.where(torque, 10 * x + 300 * x**3, -5 * x**2 - 100 * x**4)
     J = np.c_[pred, np.where(torque, 300 * x**3, -100 * x**4) * np.log1p(x)]
-    B, T = systematic_basis(obs, pred), trend_basis(obs, pred)
-    cycled = np.zeros(len(obs), bool)
-    cycled[trend_rows(obs)] = True
-    kept = [np.hstack([B, J]), np.hstack([T, J * cycled[:, None]])]  # as kept_out does
+    kept = kept_out(obs, pred, J)  # as the engine keeps them out of a fit's noise
     t = obs["time_s"].to_numpy(float)
     rows = []
     for kind, levels in KINDS.items():

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from _machine import cpu_model, run_script
+from noise_structure_choice import restricted_m2logl
 from visible_beside import recorded_times, stored
 
 from brain_fe.io import write_json_atomic
@@ -52,19 +53,12 @@ def white_only_gain(obs: pd.DataFrame, fit, nm: nz.NoiseModel) -> dict:
     white-only noise model minus that of ``nm`` (which has three parameters more: a
     correlated part, its time and a drift), and the white-only model's SD."""
     r = fit.residual(obs)
-    sysb = kept_out(obs, fit)
-    white = nz.fit_noise(obs, r, systematic=sysb, correlated=False, drift=False)
-    bases = nz._series(obs)
-    for s in bases:
-        s.restrict(sysb)
-    out = {}
-    for key in nm.params:
-        mine = [s for s in bases if s.key == key]
-        m2l = [sum(s.nll(m.params[key], r[s.rows]) for s in mine) for m in (white, nm)]
-        out[f"{key[0]}/{key[1]}"] = {
-            "gain_over_white": round(m2l[0] - m2l[1], 2),
-            "white_only_sd": round(white.params[key].white, 4)}
-    return out
+    kept = kept_out(obs, fit.prediction, fit.jacobian)
+    white = nz.fit_noise(obs, r, systematic=kept, correlated=False, drift=False)
+    return {f"{key[0]}/{key[1]}": {"gain_over_white": round(m2l["white"] - m2l["engine"], 2),
+                                   "white_only_sd": round(white.params[key].white, 4)}
+            for key, (_, m2l) in restricted_m2logl(
+                obs, r, kept, {"white": white, "engine": nm}).items()}
 
 
 def drawn(seed: int, name: str):

@@ -690,15 +690,17 @@ def _noise_of(obs, f: Fit, stated, columns: np.ndarray | None = None) -> NoiseMo
     tells a smooth misfit from wander there, and keeping the model's columns out only
     moves which of the two its noise takes (measured: a pair answered with a third,
     spurious effect)."""
-    return fit_noise(obs, f.residual(obs), stated=stated, systematic=kept_out(obs, f, columns))
-
-
-def kept_out(obs, f: Fit, columns: np.ndarray | None = None) -> list:
-    """The column sets :func:`_noise_of` keeps out of ``f``'s noise model, the fullest
-    first (:func:`diagnosis.noise.fit_noise`'s ``systematic``)."""
-    B = systematic_basis(obs, f.prediction)
-    T = trend_basis(obs, f.prediction)
     J = f.jacobian if columns is None else columns
+    return fit_noise(obs, f.residual(obs), stated=stated,
+                     systematic=kept_out(obs, f.prediction, J))
+
+
+def kept_out(obs, prediction: np.ndarray, J: np.ndarray | None) -> list:
+    """The column sets :func:`_noise_of` keeps out of the noise model of a fit with this
+    ``prediction`` and Jacobian ``J`` (its parameters' columns; None when it has none),
+    the fullest first (:func:`diagnosis.noise.fit_noise`'s ``systematic``)."""
+    B = systematic_basis(obs, prediction)
+    T = trend_basis(obs, prediction)
     if J is None or not np.isfinite(J).all():
         return [B, T]
     cycled = np.zeros(len(obs), bool)
