@@ -91,7 +91,7 @@ def two_parts(obs: pd.DataFrame, r: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Restricted-ML covariance with white, two Ornstein-Uhlenbeck parts (each between
     half an interval and the longest correlation the engine allows) and a drift."""
     t = obs["time_s"].to_numpy(float)
-    (s,) = nz._series(obs)
+    (s,) = nz.noise_series(obs)
     s.restrict([B])
     dt, ramp = nz.time_scales(obs)
     longest = nz.longest_correlation_s(dt, ramp, nz.cycle_duration(obs, np.arange(len(t))))
@@ -127,7 +127,7 @@ def run(per_ramp: int, cycles: int, draws: int) -> list[dict]:
     obs = series(per_ramp, cycles)
     t = obs["time_s"].to_numpy(float)
     B = systematic_basis(obs)
-    (one,) = nz._series(obs)  # the engine's covariance of a fitted noise: one.covariance
+    (one,) = nz.noise_series(obs)  # the engine's covariance of a fitted noise: one.covariance
     rows = []
     for kind, levels in KINDS.items():
         true = covariance(t, **levels)

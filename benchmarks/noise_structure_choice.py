@@ -78,7 +78,7 @@ def restricted_m2logl(obs: pd.DataFrame, r: np.ndarray, kept: list,
     """Per series key (curve, channel): its degrees of freedom and the -2 log L of ``r``
     under each of ``models`` (name -> noise model), restricted with the column sets
     ``kept`` as :func:`diagnosis.noise.fit_noise` restricts them."""
-    series = nz._series(obs)
+    series = nz.noise_series(obs)
     for s in series:
         s.restrict(kept)
     out = {}

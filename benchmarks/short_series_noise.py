@@ -47,7 +47,7 @@ def per_channel(obs: pd.DataFrame, r: np.ndarray, B: np.ndarray,
                 engine: nz.NoiseModel) -> tuple[nz.NoiseModel, dict]:
     """One restricted-ML noise model per channel over all its curves, and per channel the
     BIC of that shared model and of the engine's per-curve ones (-2 log L + k ln n)."""
-    series = nz._series(obs)
+    series = nz.noise_series(obs)
     for s in series:
         s.restrict(B)
     dt, ramp = nz.time_scales(obs)
@@ -57,7 +57,7 @@ def per_channel(obs: pd.DataFrame, r: np.ndarray, B: np.ndarray,
         mine = [s for s in series if s.key[1] == ch]
         curves = list(dict.fromkeys(s.key[0] for s in mine))
         rows = np.concatenate([s.rows for s in mine])
-        shared, _ = nz._fit_channel(mine, r, float(np.median(sd0[rows])), None, dt, ramp,
+        shared, _ = nz.fit_channel(mine, r, float(np.median(sd0[rows])), None, dt, ramp,
                                     True, True)
         n = int(sum(engine.dof[s.rows[0]] for s in mine))  # the same projection as the engine's
         k = 4  # white, correlated, its time, drift

@@ -312,7 +312,7 @@ class NoiseModel:
         # optimum of the likelihood that the recordings do not rule out (within
         # ``NOISE_TIE``) with a slow part ``RIVAL_FACTOR`` times larger or smaller
         self.rivals = dict(rivals or {})
-        self.series = _series(obs)
+        self.series = noise_series(obs)
         self._chol = [self._cholesky(s) for s in self.series]
         # per row: the degrees of freedom its series' noise was estimated from (rows less
         # the columns projected out); a test of a segment against this noise is an F test
@@ -423,7 +423,12 @@ class NoiseModel:
 
 
 @dataclass
-class _Series:
+class NoiseSeries:
+    """One series (a curve's channel) as the noise model sees it: its rows of the table,
+    the time lags between them, and the columns kept out of its likelihood (restricted
+    ML); :meth:`nll` is its -2 log-likelihood under one channel's noise, :meth:`covariance`
+    that noise's covariance on its rows."""
+
     key: tuple  # (curve, channel)
     rows: np.ndarray
     lags: np.ndarray  # |t_i - t_j|
@@ -467,13 +472,15 @@ class _Series:
         return S
 
 
-def _series(obs: pd.DataFrame) -> list[_Series]:
+def noise_series(obs: pd.DataFrame) -> list[NoiseSeries]:
+    """The series of ``obs`` (one per curve and channel, in table order), with their
+    recorded times (or one unit per sample where there is no clock)."""
     out = []
     for key, pos in groups(obs):
         t = obs["time_s"].to_numpy(float)[pos] if "time_s" in obs else np.full(len(pos), np.nan)
         if not np.isfinite(t).all():
             t = np.arange(len(pos), dtype=float)  # no clock: one unit per sample
-        out.append(_Series((str(key[1]), str(key[2])), pos, np.abs(t[:, None] - t[None, :]),
+        out.append(NoiseSeries((str(key[1]), str(key[2])), pos, np.abs(t[:, None] - t[None, :]),
                            t - t[0]))
     return out
 
@@ -565,7 +572,7 @@ def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
     still keeps out what fits: a series kept whole would let its noise take up any
     smooth misfit)."""
     r = np.asarray(residual, float)
-    series = _series(obs)
+    series = noise_series(obs)
     bases = [systematic] if isinstance(systematic, np.ndarray) else list(systematic or [])
     bases = [B for B in bases if B.shape[1]]
     if bases:
@@ -587,7 +594,7 @@ def fit_noise(obs: pd.DataFrame, residual, *, stated: dict | None = None,
         fixed = None if key[1] not in stated else float(stated[key[1]])
         cycles = [cycle_duration(obs, s.rows) for s in mine]
         cycle_s = min(cycles) if all(c is not None for c in cycles) else None
-        params[key], rival = _fit_channel(mine, r, w0, fixed, dt, ramp, correlated, drift,
+        params[key], rival = fit_channel(mine, r, w0, fixed, dt, ramp, correlated, drift,
                                           cycle_s)
         if rival is not None:
             rivals[key] = rival
@@ -604,11 +611,15 @@ def _slow(ch: ChannelNoise, span: float) -> float:
     return math.hypot(ch.correlated_sd, ch.drift * span)
 
 
-def _fit_channel(mine, r, w0, fixed_white, dt, ramp, correlated, drift, cycle_s=None
+def fit_channel(mine, r, w0, fixed_white, dt, ramp, correlated, drift, cycle_s=None
                  ) -> tuple[ChannelNoise, tuple[ChannelNoise, float] | None]:
     """ML parameters of one channel's noise (log parameters, bounded, L-BFGS-B), and the
     rival optimum (with its -2 log L above the best) when the recordings leave its slow
-    part undetermined (``NOISE_TIE``, ``RIVAL_FACTOR``), else None."""
+    part undetermined (``NOISE_TIE``, ``RIVAL_FACTOR``), else None.  ``mine``: the
+    channel's series (:func:`noise_series`, one shared noise), ``r``: the residual of the
+    whole table, ``w0``: the white SD to start from, ``fixed_white``: a stated white SD
+    (held) or None, ``dt``/``ramp``: :func:`time_scales`, ``correlated``/``drift``: fit
+    those parts, ``cycle_s``: :func:`cycle_duration` when every series has several cycles."""
     from scipy.optimize import minimize
 
     rows = np.concatenate([s.rows for s in mine])

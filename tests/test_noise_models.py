@@ -152,9 +152,9 @@ def _offset_gain(cov: np.ndarray, r: np.ndarray) -> float:
 
 def _engine_covariance(obs: pd.DataFrame, cn) -> np.ndarray:
     """The covariance the engine's noise model ``cn`` gives the one series of ``obs``."""
-    from diagnosis.noise import _series
+    from diagnosis.noise import noise_series
 
-    (series,) = _series(obs)
+    (series,) = noise_series(obs)
     return series.covariance(cn)
 
 

@@ -54,14 +54,14 @@ def test_the_stated_covariance_is_the_one_the_rig_draws():
     drawn by the generator (:func:`recordings.noise.rig_noise`, rounded to the quantum around
     an offset): every entry within 0.03 (Monte Carlo error of a covariance of variances
     ~0.3-0.5: ~0.01)."""
-    from diagnosis.noise import _series
+    from diagnosis.noise import noise_series
     from diagnosis.open_world import noise_statement
 
     t = np.array([0.0, 0.5, 1.0, 3.0, 7.0, 15.0, 30.0, 31.0])
     rng = np.random.default_rng(1)
     x = np.array([RIG.quantum * np.round((1.234 + rig_noise(t, RIG, rng)) / RIG.quantum)
                   - 1.234 for _ in range(6000)])
-    (series,) = _series(_obs(t, 4))
+    (series,) = noise_series(_obs(t, 4))
     engine = series.covariance(noise_statement({"torque": RIG})["torque"])
     np.testing.assert_allclose(engine, np.cov(x, rowvar=False), atol=0.03)
 
@@ -142,13 +142,13 @@ def test_every_comparison_judges_a_fit_at_its_gls_step():
     stands."""
     from diagnosis.effects import BASE_NAMES
     from diagnosis.fitting import Fit
-    from diagnosis.noise import _series
+    from diagnosis.noise import noise_series
     from diagnosis.selection import Context, gls_step
     from diagnosis.sharing import share_with
 
     t, obs, a, b, stated, nm = _linear_case()
     v = obs["value"].to_numpy()
-    (series,) = _series(obs)
+    (series,) = noise_series(obs)
     C = series.covariance(stated["torque"])
     A = np.c_[a, b]
 
