@@ -44,7 +44,8 @@ from recordings.observations import observations
 from recordings.tables import read_recordings, read_specimens
 
 
-def _case(src: Path, name: str):
+def read_case(src: Path, name: str):
+    """A stored case of an open-world run: (its label, its observations)."""
     lab = read_json(src / "labels" / f"{name}.json")
     spec = read_specimens(src / "cases" / f"{name}_specimens.csv")
     obs = observations(read_recordings(src / "cases" / f"{name}_recordings.csv", spec))
@@ -88,7 +89,7 @@ def main() -> None:
     names = a.cases or sorted(p.name.removesuffix("_result.json")
                               for p in (src / "cases").glob("*_result.json"))
     if a.short_series is not None:
-        names = [n for n in names if _has_short_series(_case(src, n)[1], a.short_series)]
+        names = [n for n in names if _has_short_series(read_case(src, n)[1], a.short_series)]
     need = ("cases/{}_result.json", "cases/{}_specimens.csv", "cases/{}_recordings.csv",
             "labels/{}.json")
     missing = [n for n in names if not all((src / f.format(n)).is_file() for f in need)]
@@ -101,7 +102,7 @@ def main() -> None:
     pending = [n for n in names if not (out / f"{n}_result.json").exists()]
     counter = SharedCounter(comm)
     for name in dynamic_items(pending, counter):
-        lab, obs = _case(src, name)
+        lab, obs = read_case(src, name)
         t0 = time.perf_counter()
         stated = ({ch: float(n["white"]) for ch, n in lab["noise"].items()}
                   if a.stated_white else noise_statement(lab["noise"]) if a.stated_full
@@ -121,7 +122,7 @@ def main() -> None:
         return
     labels, old, new = {}, {}, {}
     for n in names:
-        lab, obs = _case(src, n)
+        lab, obs = read_case(src, n)
         labels[n] = lab
         new[n] = read_json(out / f"{n}_result.json")
         o = read_json(src / "cases" / f"{n}_result.json")
